@@ -1,0 +1,133 @@
+"""Triangle meshes: loading through trimesh, checking, normalising into the unit sphere.
+
+A `Mesh` holds float32 numpy arrays (geometry is fixed: ray queries need no gradient) and hands torch
+tensors to the renderer on demand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+class MeshError(ValueError):
+    """A mesh file that cannot be used; the message names the file and the reason."""
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """An indexed triangle mesh.
+
+    vertices: [V, 3] float32 world positions.
+    faces: [F, 3] int64 vertex indices.
+    vertex_normals: [V, 3] float32 unit shading normals, or None for flat shading.
+    uvs: [V, 2] float32 texture coordinates, or None.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    vertex_normals: np.ndarray | None = None
+    uvs: np.ndarray | None = None
+
+    @property
+    def num_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def face_normals(self) -> np.ndarray:
+        """[F, 3] unit geometric normals (counter-clockwise winding), zero for degenerate faces."""
+        v = self.vertices[self.faces]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        return np.where(length > 0, n / np.maximum(length, 1e-30), 0.0).astype(np.float32)
+
+    def bounding_sphere(self) -> tuple[np.ndarray, float]:
+        """Centre [3] (of the bounding box) and radius enclosing every vertex."""
+        lo, hi = self.vertices.min(axis=0), self.vertices.max(axis=0)
+        centre = (lo + hi) / 2
+        radius = float(np.linalg.norm(self.vertices - centre, axis=1).max())
+        return centre.astype(np.float32), radius
+
+    def normalized(self, radius: float = 1.0) -> Mesh:
+        """The mesh centred at the origin and scaled so that it fits in a sphere of `radius`."""
+        centre, r = self.bounding_sphere()
+        scale = radius / max(r, 1e-12)
+        return Mesh(
+            vertices=((self.vertices - centre) * scale).astype(np.float32),
+            faces=self.faces,
+            vertex_normals=self.vertex_normals,
+            uvs=self.uvs,
+        )
+
+    def flat(self) -> Mesh:
+        """The same surface with flat shading (shading normal = geometric normal)."""
+        return Mesh(self.vertices, self.faces, None, self.uvs)
+
+    def with_smooth_normals(self) -> Mesh:
+        """Area-weighted vertex normals computed from the faces."""
+        v = self.vertices[self.faces]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])  # area-weighted
+        acc = np.zeros_like(self.vertices, dtype=np.float64)
+        for k in range(3):
+            np.add.at(acc, self.faces[:, k], n)
+        length = np.linalg.norm(acc, axis=1, keepdims=True)
+        normals = np.where(length > 0, acc / np.maximum(length, 1e-30), [0.0, 1.0, 0.0])
+        return Mesh(self.vertices, self.faces, normals.astype(np.float32), self.uvs)
+
+    def torch(self, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+        """Tensors for shading: vertices, faces, face normals and (optional) vertex normals."""
+        out = {
+            "vertices": torch.from_numpy(self.vertices).to(device),
+            "faces": torch.from_numpy(self.faces).to(device),
+            "face_normals": torch.from_numpy(self.face_normals()).to(device),
+        }
+        if self.vertex_normals is not None:
+            out["vertex_normals"] = torch.from_numpy(self.vertex_normals).to(device)
+        return out
+
+
+def check_mesh_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> list[str]:
+    """Every reason the arrays cannot be rendered (empty when they can)."""
+    problems: list[str] = []
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or len(vertices) == 0:
+        problems.append(f"{name}: mesh has no vertices")
+    elif not np.isfinite(vertices).all():
+        bad = int((~np.isfinite(vertices)).any(axis=1).sum())
+        problems.append(f"{name}: {bad} vertices have non-finite (NaN or infinite) coordinates")
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        problems.append(f"{name}: mesh has no triangle faces")
+    elif len(vertices) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        problems.append(f"{name}: faces index vertices that do not exist")
+    return problems
+
+
+def load_mesh(path: str | Path, smooth: bool = True) -> Mesh:
+    """Load an OBJ, PLY, GLB/glTF or STL file through trimesh as one triangle mesh.
+
+    Scenes with several geometries are concatenated. With `smooth`, vertex normals are the file's (when
+    consistent) or area-weighted ones; otherwise shading is flat. Raises MeshError naming the file.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"{path}: mesh file not found")
+    try:
+        loaded = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise MeshError(f"{path}: cannot be read as a mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshError(f"{path}: contains no triangle mesh")
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    faces = np.asarray(loaded.faces, dtype=np.int64).reshape(-1, 3) if len(loaded.faces) else np.zeros((0, 3), np.int64)
+    problems = check_mesh_arrays(vertices, faces, str(path))
+    if problems:
+        raise MeshError("; ".join(problems))
+    uvs = None
+    visual = getattr(loaded, "visual", None)
+    if visual is not None and getattr(visual, "uv", None) is not None and len(visual.uv) == len(vertices):
+        uvs = np.asarray(visual.uv, dtype=np.float32)
+    mesh = Mesh(vertices.astype(np.float32), faces, None, uvs)
+    return mesh.with_smooth_normals() if smooth else mesh

@@ -1,0 +1,81 @@
+"""Image files through OpenImageIO: PNG, JPEG, EXR, HDR, TIFF; 8/16-bit integer and float.
+
+Pixels come back as float32 [H, W, C]: integer formats normalised to [0, 1] (still in the file's encoding,
+e.g. sRGB for a photo), float formats as stored (linear HDR for EXR/HDR).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+class ImageError(ValueError):
+    """An image file that cannot be used; the message names the file and the reason."""
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image as float32 [H, W, C]. Raises ImageError naming the file when it cannot be read."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise ImageError(f"{path}: image file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageError(f"{path}: cannot be read as an image ({oiio.geterror() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if pixels is None or err:
+        raise ImageError(f"{path}: image data is corrupt or truncated ({err or 'no pixels'})")
+    arr = np.asarray(pixels, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    return arr
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) from the file header, without reading pixels."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageError(f"{path}: cannot be read as an image ({oiio.geterror() or 'unknown format'})")
+    spec = inp.spec()
+    inp.close()
+    return int(spec.width), int(spec.height)
+
+
+def write_image(path: str | Path, pixels: np.ndarray) -> None:
+    """Write float [H, W, C] (or [H, W]) pixels. EXR/HDR keep float32 (half for .exr would lose the sun);
+    PNG/JPEG get 8-bit (or 16-bit for .png when the array is uint16) after clipping to [0, 1]."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arr = np.asarray(pixels)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    h, w, c = arr.shape
+    suffix = path.suffix.lower()
+    if suffix in (".exr", ".hdr"):
+        data, fmt = np.ascontiguousarray(arr, dtype=np.float32), oiio.FLOAT
+    elif arr.dtype == np.uint16:
+        data, fmt = np.ascontiguousarray(arr), oiio.UINT16
+    else:
+        data = np.ascontiguousarray(np.round(np.clip(arr, 0.0, 1.0) * 255.0).astype(np.uint8))
+        fmt = oiio.UINT8
+    out = oiio.ImageOutput.create(str(path))
+    if out is None:
+        raise ImageError(f"{path}: no writer for this file type ({oiio.geterror()})")
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if not out.open(str(path), spec) or not out.write_image(data):
+        msg = out.geterror()
+        out.close()
+        raise ImageError(f"{path}: cannot write image ({msg})")
+    out.close()
