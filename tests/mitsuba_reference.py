@@ -87,7 +87,8 @@ def mitsuba_mesh(mesh: Mesh, bsdf: Any = None) -> Any:
     params["faces"] = mi.UInt32(np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel())
     if smooth:
         assert mesh.vertex_normals is not None
-        params["vertex_normals"] = mi.Float(np.ascontiguousarray(mesh.vertex_normals, dtype=np.float32).ravel())
+        normals = np.ascontiguousarray(mesh.vertex_normals, dtype=np.float32)
+        params["vertex_normals"] = mi.Float(normals.ravel())
     params.update()
     return m
 
@@ -143,7 +144,9 @@ def mitsuba_sensor_dict(camera: Camera, spp: int, seed: int = 0) -> dict[str, An
     mi = load_mitsuba()
     w, h = int(camera.width), int(camera.height)
     if not math.isclose(camera.fl_x, camera.fl_y, rel_tol=1e-6):
-        raise ValueError(f"Mitsuba's perspective sensor needs square pixels; fl_x={camera.fl_x} fl_y={camera.fl_y}")
+        raise ValueError(
+            f"Mitsuba's perspective sensor needs square pixels; fl_x={camera.fl_x} fl_y={camera.fl_y}"
+        )
     fov_x = math.degrees(2.0 * math.atan(w / (2.0 * camera.fl_x)))
     to_world = np.asarray(camera.c2w, dtype=np.float64) @ _FLIP_XZ
     return {
@@ -175,7 +178,7 @@ def mitsuba_sensor(camera: Camera, spp: int, seed: int = 0) -> Any:
 
 
 def mitsuba_integrator(max_bounces: int) -> Any:
-    """`path` integrator doing `max_bounces` surface bounces (our count), no Russian roulette, visible emitters."""
+    """`path` integrator for `max_bounces` bounces (our count), no Russian roulette, emitters shown."""
     if max_bounces < 1:
         raise ValueError("max_bounces must be >= 1")
     return load_mitsuba().load_dict(
@@ -184,7 +187,7 @@ def mitsuba_integrator(max_bounces: int) -> Any:
 
 
 class MitsubaRenderer:
-    """One scene, sensor and integrator kept loaded so that repeated renders reuse Mitsuba's compiled kernels."""
+    """One scene, sensor and integrator kept loaded; repeated renders reuse Mitsuba's compiled kernels."""
 
     def __init__(
         self, mesh: Mesh, envmap: EnvironmentMap, camera: Camera, material: dict[str, Any], max_bounces: int,

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 from capture_fixtures import read_transforms, write_capture, write_transforms, zip_capture
+from conftest import ENVMAPS
 
 from neumatex_core.capture import (
     Capture,
@@ -31,7 +32,7 @@ from neumatex_core.capture.archive import copy_limited
 from neumatex_core.geometry.camera import look_at
 from neumatex_core.imageio import write_image
 
-STUDIO = Path("/work/shared/data/envmaps/studio.exr")
+STUDIO = ENVMAPS / "studio.exr"
 
 
 @pytest.fixture

@@ -8,28 +8,13 @@ fails the same check, so the checks can fail.
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import torch
-
-from neumatex_core.geometry.camera import Camera, camera_from_fov, look_at
-from neumatex_core.geometry.mesh import Mesh, load_mesh
-from neumatex_core.geometry.raycast import RayCaster
-from neumatex_core.lighting.envmap import EnvironmentMap
-
-try:
-    import mitsuba  # noqa: F401
-
-    _MITSUBA_ERROR = ""
-except ImportError as exc:  # pragma: no cover - depends on the environment
-    _MITSUBA_ERROR = f"mitsuba cannot be imported ({exc}); install the dev extras (mitsuba==3.9.1)"
-
-pytestmark = pytest.mark.skipif(bool(_MITSUBA_ERROR), reason=_MITSUBA_ERROR or "mitsuba available")
-
-from mitsuba_reference import (  # noqa: E402
+from conftest import SHARED
+from mitsuba_reference import (
     load_mitsuba,
     mitsuba_forward_paths_per_second,
     mitsuba_ray_queries_per_second,
@@ -38,7 +23,20 @@ from mitsuba_reference import (  # noqa: E402
     shading_normal_backfacing_mask,
 )
 
-DATA = Path("/work/shared/data")
+from neumatex_core.geometry.camera import Camera, camera_from_fov, look_at
+from neumatex_core.geometry.mesh import Mesh, load_mesh
+from neumatex_core.geometry.raycast import RayCaster
+from neumatex_core.lighting.envmap import EnvironmentMap
+
+try:
+    load_mitsuba()  # sets DRJIT_LIBLLVM_PATH before mitsuba is first imported
+    _MITSUBA_ERROR = ""
+except ImportError as exc:  # pragma: no cover - depends on the environment
+    _MITSUBA_ERROR = f"mitsuba cannot be imported ({exc}); install the dev extras (mitsuba==3.9.1)"
+
+pytestmark = pytest.mark.skipif(bool(_MITSUBA_ERROR), reason=_MITSUBA_ERROR or "mitsuba available")
+
+DATA = SHARED / "data"
 ENVMAPS = DATA / "envmaps"
 MESHES = DATA / "meshes"
 DIFFUSE: dict[str, Any] = {"kind": "diffuse", "base_color": (0.3, 0.3, 0.3)}
@@ -51,6 +49,12 @@ def rotation(axis: tuple[float, float, float], angle: float) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
 
 
+def orbit_camera(eye: list[float], width: int, height: int, fov_x_deg: float) -> Camera:
+    """A centred camera at `eye` looking at the origin, +Y up."""
+    c2w = look_at(np.asarray(eye, dtype=np.float64), np.zeros(3), np.array([0.0, 1.0, 0.0]))
+    return camera_from_fov(c2w, width, height, fov_x_deg)
+
+
 def tiny_triangle_behind(camera: Camera) -> Mesh:
     """A 1 mm triangle 50 units behind the camera: every pixel sees only the environment."""
     forward = -np.asarray(camera.c2w[:3, 2], dtype=np.float64)
@@ -59,7 +63,9 @@ def tiny_triangle_behind(camera: Camera) -> Mesh:
     return Mesh(v.astype(np.float32), np.array([[0, 1, 2]], dtype=np.int64))
 
 
-def our_envmap_image(envmap: EnvironmentMap, camera: Camera, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def our_envmap_image(
+    envmap: EnvironmentMap, camera: Camera, spp: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel mean [H, W, 3] and its standard error of EnvironmentMap.eval over jittered camera rays."""
     gen = torch.Generator().manual_seed(seed)
     _, d, _ = camera.generate_rays(spp, gen)
@@ -99,7 +105,9 @@ def test_camera_and_envmap_match_mitsuba(case: tuple[Any, ...]) -> None:
     mesh = tiny_triangle_behind(camera)
 
     ours, ours_se = our_envmap_image(envmap, camera, spp=1024, seed=1)
-    ref, ref_se = render_mitsuba_batches(mesh, envmap, camera, DIFFUSE, 1, n_batches=16, spp_per_batch=4, seed=7)
+    ref, ref_se = render_mitsuba_batches(
+        mesh, envmap, camera, DIFFUSE, 1, n_batches=16, spp_per_batch=4, seed=7
+    )
     result = agreement(ours, ours_se, ref, ref_se)
     assert agrees(result), f"our camera/envmap disagree with Mitsuba: within 5 sigma, mean |z| = {result}"
 
@@ -124,24 +132,32 @@ def coverage(mesh: Mesh, camera: Camera, spp: int, seed: int) -> np.ndarray:
 
 def test_mesh_silhouette_matches_mitsuba() -> None:
     mesh = load_mesh(MESHES / "suzanne.obj").normalized().flat()
-    camera = camera_from_fov(look_at(np.array([1.4, 1.0, 2.6]), np.zeros(3), np.array([0.0, 1.0, 0.0])), 32, 32, 45)
+    camera = orbit_camera([1.0, 0.7, 1.8], 32, 32, 60)
     envmap = EnvironmentMap.constant()
     albedo = DIFFUSE["base_color"][0]
     img = render_mitsuba(mesh, envmap, camera, DIFFUSE, max_bounces=1, spp=64, seed=3).mean(axis=2)
     cov = coverage(mesh, camera, spp=256, seed=5)
 
     background, covered = cov == 0.0, cov == 1.0
-    assert background.sum() > 200 and covered.sum() > 200, "the object should fill part of the frame"
+    assert background.sum() > 200 and covered.sum() > 100, "the object should fill part of the frame"
     # Background: exactly the (constant, unit) environment.
     assert np.abs(img[background] - 1.0).max() < 1e-4
     # Covered: each direct-lighting sample (light + BSDF sample, MIS) is below 2 * albedo < 1, and the pixel
     # mean is below the albedo (a diffuse surface under unit radiance reflects at most its albedo).
     bad = covered & (img >= 2 * albedo + 0.02)
-    assert bad.sum() <= max(1, int(0.005 * covered.sum())), f"{int(bad.sum())} covered pixels look like background"
+    assert bad.sum() <= max(1, int(0.005 * covered.sum())), f"{int(bad.sum())} covered pixels look empty"
     assert 0.3 * albedo < img[covered].mean() <= albedo * 1.02
-    # Pixel-centre hits agree with Mitsuba away from edges.
-    centre_hit = shading_normal_backfacing_mask(mesh, camera)  # flat shading: no such pixels
-    assert not centre_hit.any()
+    # Pixel-centre hits of our RayCaster agree with Mitsuba's coverage away from edges (3x3 neighbourhood
+    # of centre hits all equal).
+    o, d = camera.rays_for_pixels(*(t.reshape(-1) + 0.5 for t in torch.meshgrid(
+        torch.arange(32.0), torch.arange(32.0), indexing="xy")))
+    centre = RayCaster(mesh).intersect(o, d).valid.reshape(32, 32).numpy()
+    pad = np.pad(centre, 1, mode="edge")
+    shifts = [pad[1 + i : 33 + i, 1 + j : 33 + j] for i in (-1, 0, 1) for j in (-1, 0, 1)]
+    inner, outer = np.logical_and.reduce(shifts), ~np.logical_or.reduce(shifts)
+    assert inner.sum() > 50 and outer.sum() > 200
+    assert np.all(img[inner] < 2 * albedo + 0.02) and np.all(np.abs(img[outer] - 1.0) < 1e-4)
+    assert not shading_normal_backfacing_mask(mesh, camera).any()  # flat shading: no such pixels
 
 
 def tilted_triangle(normal: np.ndarray) -> Mesh:
@@ -153,7 +169,7 @@ def tilted_triangle(normal: np.ndarray) -> Mesh:
 def test_shading_normal_facing_away_behaviour() -> None:
     """Documents what Mitsuba does where the shading normal faces away and the geometric normal does not:
     single-sided BSDFs give black; `twosided` shades with the shading normal flipped to the camera side."""
-    camera = camera_from_fov(look_at(np.array([0.0, 0.0, 3.0]), np.zeros(3), np.array([0.0, 1.0, 0.0])), 16, 16, 30)
+    camera = orbit_camera([0.0, 0.0, 3.0], 16, 16, 30)
     envmap = EnvironmentMap.from_file(ENVMAPS / "courtyard.exr")
     away = np.array([0.95, 0.1, -0.3])  # geometric normal +Z faces the camera, this one does not
     mat = {"kind": "diffuse", "base_color": (0.5, 0.5, 0.5)}
@@ -167,7 +183,8 @@ def test_shading_normal_facing_away_behaviour() -> None:
 
     a, sa = render_mitsuba_batches(tilted_triangle(away), envmap, camera, mat, 1, 8, 16, seed=11)
     b, sb = render_mitsuba_batches(tilted_triangle(-away), envmap, camera, mat, 1, 8, 16, seed=21)
-    g, sg = render_mitsuba_batches(tilted_triangle(np.array([0.0, 0.0, 1.0])), envmap, camera, mat, 1, 8, 16, 31)
+    geo = tilted_triangle(np.array([0.0, 0.0, 1.0]))
+    g, sg = render_mitsuba_batches(geo, envmap, camera, mat, 1, 8, 16, seed=31)
     assert a.mean() > 0.05
     z_flip = np.abs(a - b) / np.sqrt(sa**2 + sb**2 + 1e-12)
     assert (z_flip < 5).mean() > 0.99, "twosided should equal shading with the flipped shading normal"
@@ -177,12 +194,12 @@ def test_shading_normal_facing_away_behaviour() -> None:
 
 def test_conductor_and_benchmark_helpers() -> None:
     mesh = load_mesh(MESHES / "suzanne.obj").normalized()
-    camera = camera_from_fov(look_at(np.array([0.0, 0.5, 3.0]), np.zeros(3), np.array([0.0, 1.0, 0.0])), 24, 16, 45)
+    camera = orbit_camera([0.0, 0.5, 3.0], 24, 16, 45)
     envmap = EnvironmentMap.constant()
     img = render_mitsuba(mesh, envmap, camera, {"kind": "conductor", "roughness": 0.4}, 2, spp=16)
     assert img.shape == (16, 24, 3) and img.dtype == np.float32 and np.isfinite(img).all()
-    # Unit environment, Fresnel 1: single-scattering GGX reflects at most everything.
-    assert img.max() < 1.0 + 1e-3 or np.quantile(img, 0.99) <= 1.0 + 1e-3
+    # Unit environment, Fresnel 1: single-scattering GGX reflects at most everything (energy is lost only).
+    assert 0.5 < float(img.mean()) < 1.02
     with pytest.raises(ValueError):
         render_mitsuba(mesh, envmap, camera, {"kind": "glass"}, 1, spp=1)
 

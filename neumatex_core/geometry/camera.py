@@ -81,9 +81,7 @@ class Camera:
         Returns origins [N, 3] and unit directions [N, 3] in world space.
         """
         device = x.device
-        d_cam = torch.stack(
-            [(x - self.cx) / self.fl_x, -(y - self.cy) / self.fl_y, -torch.ones_like(x)], dim=-1
-        )
+        d_cam = torch.stack([(x - self.cx) / self.fl_x, -(y - self.cy) / self.fl_y, -torch.ones_like(x)], dim=-1)
         rot = torch.as_tensor(np.asarray(self.c2w[:3, :3]), dtype=torch.float32, device=device)
         d = d_cam @ rot.T
         d = d / d.norm(dim=-1, keepdim=True)
@@ -133,7 +131,9 @@ def preset_views(
     for k in range(PRESET_ORBIT_VIEWS):
         az = 2 * math.pi * k / PRESET_ORBIT_VIEWS
         eye = distance * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
-        cams.append(camera_from_fov(look_at(eye, np.zeros(3), np.array([0.0, 1.0, 0.0])), resolution, resolution, fov_deg))
+        cams.append(
+            camera_from_fov(look_at(eye, np.zeros(3), np.array([0.0, 1.0, 0.0])), resolution, resolution, fov_deg)
+        )
     for axis, up in (
         ([1, 0, 0], [0, 1, 0]),
         ([-1, 0, 0], [0, 1, 0]),

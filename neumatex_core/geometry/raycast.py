@@ -70,7 +70,9 @@ class RayCaster:
             torch.from_numpy(bary).to(device),
         )
 
-    def occluded(self, origins: torch.Tensor, directions: torch.Tensor, t_max: torch.Tensor | None = None) -> torch.Tensor:
+    def occluded(
+        self, origins: torch.Tensor, directions: torch.Tensor, t_max: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """[N] bool: something blocks the ray before `t_max` (default: infinitely far)."""
         device = origins.device
         n = origins.shape[0]

@@ -94,8 +94,17 @@ class PBRMaterial(Material):
         c1 = torch.tensor([1.0, 0.0425, 1.04, -0.04], device=wo.device)
         rr = r * c0 + c1
         a004 = torch.minimum(rr[:, 0:1] ** 2, torch.exp2(-9.28 * n_dot_v)) * rr[:, 0:1] + rr[:, 1:2]
-        ab = a004 * torch.cat([torch.tensor([-1.04], device=wo.device).expand_as(a004),
-                               torch.tensor([1.04], device=wo.device).expand_as(a004)], dim=-1) + rr[:, 2:4]
+        ab = (
+            a004
+            * torch.cat(
+                [
+                    torch.tensor([-1.04], device=wo.device).expand_as(a004),
+                    torch.tensor([1.04], device=wo.device).expand_as(a004),
+                ],
+                dim=-1,
+            )
+            + rr[:, 2:4]
+        )
         spec = self.f0 * ab[:, 0:1] + ab[:, 1:2]
         return self.diffuse_albedo + spec
 

@@ -1,0 +1,118 @@
+"""`neumatex`: the command-line interface. Each subcommand's options come from a config dataclass."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from neumatex_core.config import add_config_arguments, config_from_args, option
+
+
+@dataclass
+class RenderConfig:
+    """`neumatex render`: a mesh with a PBR material under an environment map, from the preset views or a
+    capture's cameras, to linear EXR and tonemapped PNG files."""
+
+    mesh: str = option("", "mesh file (OBJ/PLY/GLB); normalised into the unit sphere")
+    envmap: str = option("", "equirectangular HDR environment map (EXR/HDR)")
+    capture: str = option("", "render a capture (folder or zip): its mesh, envmap, cameras and tonemap")
+    out: str = option("out/render", "output folder")
+    views: str = option("all", "preset views: all (23), orbit (17), canonical (6) or indices like 0,5,9")
+    resolution: int = option(256, "image size of the preset views (pixels)")
+    spp: int = option(64, "samples per pixel")
+    max_bounces: int = option(3, "surface interactions per path (1 = direct lighting only)")
+    seed: int = option(0, "random seed (view i uses seed + i)")
+    base_color: tuple[float, float, float] = option((0.8, 0.8, 0.8), "PBR base colour, linear RGB")
+    roughness: float = option(0.5, "PBR roughness in [0, 1]")
+    metallic: float = option(0.0, "PBR metallic in [0, 1]")
+    exposure: float = option(1.0, "tonemap exposure for the PNGs (a capture's own tonemap wins)")
+    flat_shading: bool = option(False, "shade with face normals instead of smooth vertex normals")
+    device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
+
+
+def _select_views(spec: str, n: int) -> list[int]:
+    if spec == "all":
+        return list(range(n))
+    if spec == "orbit":
+        return list(range(17))
+    if spec == "canonical":
+        return list(range(17, 23))
+    try:
+        picked = [int(s) for s in spec.split(",") if s.strip()]
+    except ValueError:
+        raise ValueError(f"--views: expected all, orbit, canonical or comma-separated indices, got {spec!r}") from None
+    bad = [i for i in picked if not 0 <= i < n]
+    if bad or not picked:
+        raise ValueError(f"--views: indices must be in 0..{n - 1}, got {spec!r}")
+    return picked
+
+
+def run_render(cfg: RenderConfig) -> int:
+    """Render and write files; returns the exit code."""
+    import torch
+    from tqdm import tqdm
+
+    from neumatex_core.capture import Tonemap, load_capture
+    from neumatex_core.device import default_device
+    from neumatex_core.geometry import load_mesh, preset_views
+    from neumatex_core.imageio import write_image
+    from neumatex_core.lighting import EnvironmentMap
+    from neumatex_core.materials.field import UniformPBR
+    from neumatex_core.render import PathTracer, PathTracerConfig, Scene
+    from neumatex_core.render.views import contact_sheet, render_views
+
+    device = default_device() if cfg.device == "auto" else torch.device(cfg.device)
+    if cfg.capture:
+        capture = load_capture(cfg.capture)
+        mesh = capture.load_mesh(smooth=not cfg.flat_shading)
+        envmap = EnvironmentMap.from_file(capture.envmap_path, capture.envmap_to_world, capture.envmap_scale, device)
+        cameras = [f.camera for f in capture.frames]
+        tonemap = capture.tonemap
+    else:
+        if not cfg.mesh or not cfg.envmap:
+            raise ValueError("give --capture, or both --mesh and --envmap")
+        mesh = load_mesh(cfg.mesh, smooth=not cfg.flat_shading).normalized()
+        envmap = EnvironmentMap.from_file(cfg.envmap, device=device)
+        presets = preset_views(cfg.resolution)
+        cameras = [presets[i] for i in _select_views(cfg.views, len(presets))]
+        tonemap = Tonemap(exposure=cfg.exposure)
+    material = UniformPBR(cfg.base_color, cfg.roughness, cfg.metallic)
+    scene = Scene(mesh, envmap, material, device=device)
+    tracer = PathTracer(PathTracerConfig(max_bounces=cfg.max_bounces, spp=cfg.spp))
+    out = Path(cfg.out)
+    with tqdm(total=len(cameras), unit="view", desc="render") as bar:
+        views = render_views(
+            scene, cameras, tracer, out, tonemap.apply, cfg.seed, progress=lambda done, total: bar.update(done - bar.n)
+        )
+    sizes = {v.display.shape for v in views}
+    if len(sizes) == 1:
+        write_image(out / "views.png", contact_sheet([v.display for v in views]))
+    print(f"wrote {len(views)} views (EXR + PNG) to {out}/" + (" and views.png" if len(sizes) == 1 else ""))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="neumatex", description="Neural material extraction (NeuMatEx).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_validate = sub.add_parser("validate", help="check a capture folder or zip; lists every problem")
+    p_validate.add_argument("capture", help="capture folder, transforms.json or .zip")
+    p_render = sub.add_parser("render", help=RenderConfig.__doc__.split("\n")[0] if RenderConfig.__doc__ else "")
+    add_config_arguments(p_render, RenderConfig)
+    args = parser.parse_args(argv)
+
+    if args.command == "validate":
+        from neumatex_core.capture import run_validate
+
+        return run_validate(args.capture)
+    try:
+        return run_render(config_from_args(RenderConfig, args))
+    except (ValueError, OSError) as exc:  # our errors (MeshError, EnvmapError, CaptureError, ...) are ValueErrors
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

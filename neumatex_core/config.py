@@ -1,0 +1,65 @@
+"""Typed configuration dataclasses and the command-line options generated from them (nerfstudio-style).
+
+Each command's options are the fields of one dataclass: the field name gives the flag (`--max-bounces`),
+the type its parser, the default its default, and the `help` metadata its help text.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import types
+import typing
+from typing import Any, TypeVar
+
+C = TypeVar("C")
+
+
+def option(default: Any, help: str, **kw: Any) -> Any:  # noqa: A002 - mirrors argparse's name
+    """A dataclass field carrying its command-line help text."""
+    if isinstance(default, list | tuple | dict):
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata={"help": help, **kw})
+    return dataclasses.field(default=default, metadata={"help": help, **kw})
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
+    """Add one `--flag` per field of the dataclass `cls`."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        flag = "--" + f.name.replace("_", "-")
+        typ = hints[f.name]
+        args = typing.get_args(typ)
+        if isinstance(typ, types.UnionType) or typing.get_origin(typ) is typing.Union:
+            typ = next(a for a in args if a is not type(None))
+            args = typing.get_args(typ)
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            default = None
+        helptext = f"{f.metadata.get('help', '')} (default: {default})"
+        if typ is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=helptext)
+        elif typing.get_origin(typ) is tuple:
+            parser.add_argument(
+                flag,
+                type=args[0],
+                nargs=len(args),
+                default=default,
+                help=helptext,
+                metavar=tuple(f"{f.name[0].upper()}{i}" for i in range(len(args))),
+            )
+        elif typing.get_origin(typ) is typing.Literal:
+            parser.add_argument(flag, choices=list(args), default=default, help=helptext)
+        else:
+            parser.add_argument(flag, type=typ, default=default, help=helptext)
+
+
+def config_from_args(cls: type[C], ns: argparse.Namespace) -> C:
+    """Build the dataclass `cls` from parsed arguments."""
+    values = {}
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        value = getattr(ns, f.name)
+        values[f.name] = tuple(value) if isinstance(value, list) else value
+    return cls(**values)

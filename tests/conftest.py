@@ -1,0 +1,21 @@
+"""Shared test settings: where the shared meshes and environment maps live."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("NEUMATEX_SHARED", REPO.parent / "shared"))
+MESHES = SHARED / "data" / "meshes"
+ENVMAPS = SHARED / "data" / "envmaps"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The shared data folder (meshes/, envmaps/); tests that need it fail loudly when it is missing."""
+    data = SHARED / "data"
+    assert data.is_dir(), f"shared data not found at {data}; set NEUMATEX_SHARED"
+    return data
