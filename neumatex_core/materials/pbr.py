@@ -105,7 +105,7 @@ class PBRMaterial(Material):
             )
             + rr[:, 2:4]
         )
-        spec = self.f0 * ab[:, 0:1] + ab[:, 1:2]
+        spec = self.f0 * ab[:, 0:1] + (50.0 * self.f0[:, 1:2]).clamp(0.0, 1.0) * ab[:, 1:2]  # as schlick_fresnel
         return self.diffuse_albedo + spec
 
     def select(self, index: torch.Tensor) -> PBRMaterial:
