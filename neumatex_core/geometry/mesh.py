@@ -131,3 +131,13 @@ def load_mesh(path: str | Path, smooth: bool = True) -> Mesh:
         uvs = np.asarray(visual.uv, dtype=np.float32)
     mesh = Mesh(vertices.astype(np.float32), faces, None, uvs)
     return mesh.with_smooth_normals() if smooth else mesh
+
+
+def icosphere(subdivisions: int = 4, radius: float = 1.0) -> Mesh:
+    """A unit-centred sphere (trimesh icosphere) with smooth normals: the galleries' and tests' probe shape."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    vertices = np.asarray(sphere.vertices, dtype=np.float32)
+    normals = vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
+    return Mesh(vertices, np.asarray(sphere.faces, dtype=np.int64), normals.astype(np.float32))

@@ -1,6 +1,7 @@
-"""Materials: the Material interface, the PBR material (and, later, the layered and neural materials)."""
+"""Materials: the Material interface, the PBR material, the analytic layered material and the neural basis."""
 
 from neumatex_core.materials.base import Material
+from neumatex_core.materials.layered import LayeredMaterial
 from neumatex_core.materials.pbr import PBRMaterial
 
-__all__ = ["Material", "PBRMaterial"]
+__all__ = ["LayeredMaterial", "Material", "PBRMaterial"]

@@ -13,6 +13,7 @@ import torch
 
 from neumatex_core.geometry.surface import SurfaceInteraction
 from neumatex_core.materials.base import Material
+from neumatex_core.materials.layered import LayeredMaterial
 from neumatex_core.materials.pbr import DIELECTRIC_F0, PBRMaterial
 
 
@@ -42,3 +43,16 @@ class UniformPBR(MaterialField):
             self.metallic.to(device).expand(n),
             self.dielectric_f0,
         )
+
+
+class UniformLayered(MaterialField):
+    """One analytic layered material everywhere: params [22] normalised (`PARAMETER_NAMES`), base_color [3]."""
+
+    def __init__(self, params: torch.Tensor, base_color: torch.Tensor | tuple[float, float, float]) -> None:
+        self.params = torch.as_tensor(params, dtype=torch.float32)
+        self.base_color = torch.as_tensor(base_color, dtype=torch.float32)
+
+    def at(self, si: SurfaceInteraction) -> LayeredMaterial:
+        n = si.position.shape[0]
+        device = si.position.device
+        return LayeredMaterial(self.params.to(device).expand(n, -1), self.base_color.to(device).expand(n, 3))

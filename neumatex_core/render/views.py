@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neumatex_core.geometry.camera import Camera
+from neumatex_core.geometry.camera import Camera, camera_from_fov, look_at
 from neumatex_core.imageio import write_image
 from neumatex_core.render.path_tracer import PathTracer
 from neumatex_core.render.scene import Scene
@@ -61,3 +62,11 @@ def contact_sheet(images: Sequence[np.ndarray], columns: int = 6, pad: int = 2) 
         y, x = pad + r * (h + pad), pad + c * (w + pad)
         sheet[y:y + h, x:x + w] = img[:, :, :3]
     return sheet
+
+
+def sphere_camera(resolution: int, elevation_deg: float = 20.0, distance: float = 3.2) -> Camera:
+    """A camera framing the unit sphere (the sphere fills ~80% of the frame), from the preset elevation."""
+    el = math.radians(elevation_deg)
+    eye = distance * np.array([0.0, math.sin(el), math.cos(el)])
+    fov = 2 * math.degrees(math.asin(1.0 / distance)) / 0.8
+    return camera_from_fov(look_at(eye, np.zeros(3), np.array([0.0, 1.0, 0.0])), resolution, resolution, fov)
