@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from neumatex_core.config import add_config_arguments, config_from_args, option
+from neumatex_core.materials.basis_training import TrainBasisConfig
 
 
 @dataclass
@@ -94,21 +96,113 @@ def run_render(cfg: RenderConfig) -> int:
     return 0
 
 
+def run_train_basis(cfg: TrainBasisConfig) -> int:
+    """Train (or resume) the neural basis; write weights + record to cfg.out (and into the package with --install)."""
+    import shutil
+
+    import torch
+    from tqdm import tqdm
+
+    from neumatex_core.device import default_device
+    from neumatex_core.materials.basis_training import train_basis
+    from neumatex_core.materials.neural_basis import DATA_DIR
+
+    device = default_device() if cfg.device == "auto" else torch.device(cfg.device)
+    bars: dict[str, tqdm] = {}
+
+    def progress(stage: str, step: int, total: int, loss: float) -> None:
+        if stage not in bars:
+            bars[stage] = tqdm(total=total, desc=f"train-basis {stage}", unit="step", initial=step - 1)
+        bars[stage].update(1)
+        if step % 20 == 0 or step == total:
+            bars[stage].set_postfix(loss=f"{loss:.4f}")
+
+    basis, metrics = train_basis(cfg, device, progress)
+    for bar in bars.values():
+        bar.close()
+    out = Path(cfg.out)
+    basis_id = basis.save(out / "basis.safetensors", out / "basis.json", metrics, cfg.version)
+    print(f"basis {basis_id}: median relative BSDF error {metrics['bsdf_median_rel_error']:.4f}, "
+          f"log-L1 {metrics['bsdf_log_l1']:.4f}, T MAE {metrics['t_mae']:.4f}, R MAE {metrics['r_mae']:.4f}")
+    if cfg.install:
+        for name in ("basis.safetensors", "basis.json"):
+            shutil.copy2(out / name, DATA_DIR / name)
+        print(f"installed into {DATA_DIR}")
+    return 0
+
+
+@dataclass
+class GalleryConfig:
+    """`neumatex gallery`: spheres of every material family of the prior (and mixtures), the analytic layered
+    material next to its neural encoding, under shared environment maps, as one labelled PNG."""
+
+    out: str = option("out/gallery.png", "output PNG")
+    envmaps: str = option("../shared/data/envmaps/courtyard.exr,../shared/data/envmaps/studio.exr",
+                          "comma-separated environment maps (EXR/HDR)")
+    per_family: int = option(1, "materials drawn per family (rows)")
+    resolution: int = option(96, "sphere image size (pixels)")
+    spp: int = option(64, "samples per pixel")
+    exposure: float = option(1.0, "tonemap exposure")
+    seed: int = option(0, "seed of the material draws and the renders")
+    device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
+
+
+def run_gallery(cfg: GalleryConfig) -> int:
+    import torch
+    from tqdm import tqdm
+
+    from neumatex_core.capture import Tonemap
+    from neumatex_core.device import default_device
+    from neumatex_core.imageio import write_image
+    from neumatex_core.lighting import EnvironmentMap
+    from neumatex_core.materials.neural_basis import load_basis
+    from neumatex_core.render.gallery import SphereSettings, family_gallery
+
+    device = default_device() if cfg.device == "auto" else torch.device(cfg.device)
+    paths = [Path(p.strip()) for p in cfg.envmaps.split(",") if p.strip()]
+    if not paths:
+        raise ValueError("--envmaps: give at least one environment map")
+    envmaps = [(p.stem, EnvironmentMap.from_file(p, device=device)) for p in paths]
+    basis = load_basis(str(device))
+    settings = SphereSettings(cfg.resolution, cfg.spp, cfg.seed, strategy="mis")
+    with tqdm(unit="sphere pair", desc="gallery") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        image = family_gallery(envmaps, basis, settings, Tonemap(exposure=cfg.exposure).apply, cfg.per_family,
+                               progress)
+    Path(cfg.out).parent.mkdir(parents=True, exist_ok=True)
+    write_image(cfg.out, image)
+    print(f"wrote {cfg.out} (basis {basis.basis_id})")
+    return 0
+
+
+COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
+    "render": (RenderConfig, run_render),
+    "train-basis": (TrainBasisConfig, run_train_basis),
+    "gallery": (GalleryConfig, run_gallery),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="neumatex", description="Neural material extraction (NeuMatEx).")
     sub = parser.add_subparsers(dest="command", required=True)
     p_validate = sub.add_parser("validate", help="check a capture folder or zip; lists every problem")
     p_validate.add_argument("capture", help="capture folder, transforms.json or .zip")
-    p_render = sub.add_parser("render", help=RenderConfig.__doc__.split("\n")[0] if RenderConfig.__doc__ else "")
-    add_config_arguments(p_render, RenderConfig)
+    for name, (cls, _) in COMMANDS.items():
+        doc = (cls.__doc__ or "").strip()
+        p = sub.add_parser(name, help=doc.split("\n")[0], description=doc)
+        add_config_arguments(p, cls)
     args = parser.parse_args(argv)
 
     if args.command == "validate":
         from neumatex_core.capture import run_validate
 
         return run_validate(args.capture)
+    cls, run = COMMANDS[args.command]
     try:
-        return run_render(config_from_args(RenderConfig, args))
+        return run(config_from_args(cls, args))
     except (ValueError, OSError) as exc:  # our errors (MeshError, EnvmapError, CaptureError, ...) are ValueErrors
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -6,13 +6,16 @@ Every family starts from a neutral material (no dust, fuzz, coat, haze or scatte
 and switches on what characterises it:
 
 - plastic: dielectric specular (f0 0.02..0.06, grey), roughness 0.1..0.8, saturated base colour;
-- metal: coloured f0 (random hue, value 0.5..1, saturation <= 0.5), roughness 0.05..0.7, dark base (<= 0.05);
-- coated: clear coat weight 0.7..1 (roughness 0..0.3, some tint) over a plastic or metal;
+- metal: coloured f0 (random hue, value 0.5..1, saturation <= 0.5), roughness 0.1..0.7, dark base (<= 0.05);
+- coated: clear coat weight 0.7..1 (roughness 0.1..0.35, some tint) over a plastic or metal;
 - dusty: dust coverage 0.3..1 with any back-scatter over a plastic;
 - fuzzy: fuzz weight 0.5..1 (cloth-like, rough specular);
-- hazy: haze weight 0.3..1 with spread 0.2..1 over a glossy metal or plastic;
+- hazy: haze weight 0.3..1 with spread 0.2..1 over a glossy (roughness 0.1..0.35) metal or plastic;
 - scattering: scatter weight 0.4..1, any anisotropy, weak specular, light base (skin, wax, marble);
 - mixture: every layer switched on independently with probability 1/2, at uniform strengths.
+
+No GGX roughness goes below ROUGHNESS_MIN = 0.1 (alpha 0.01, a peak of ~3e3 / sr): sharper, near-mirror lobes
+are beyond what the 4x64 neural basis can represent (and what 17 views under an environment map can pin down).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import torch
 
 from neumatex_core.materials.layered import INDEX, N_PARAMS
 
+ROUGHNESS_MIN = 0.1
 FAMILIES = ("plastic", "metal", "coated", "dusty", "fuzzy", "hazy", "scattering", "mixture")
 
 
@@ -70,7 +74,7 @@ def _plastic(p: torch.Tensor, g: torch.Generator) -> None:
 def _metal(p: torch.Tensor, g: torch.Generator) -> None:
     n = p.shape[0]
     _set_rgb(p, "spec_f0", _hue_color(n, 0.0, 0.5, 0.5, 1.0, g))
-    _set(p, "spec_roughness", _u(n, 0.05, 0.7, g))
+    _set(p, "spec_roughness", _u(n, ROUGHNESS_MIN, 0.7, g))
 
 
 def sample_parameters(family: str, n: int, generator: torch.Generator) -> torch.Tensor:
@@ -91,11 +95,11 @@ def sample_parameters(family: str, n: int, generator: torch.Generator) -> torch.
         p = torch.where(metal.unsqueeze(-1), q, p)
         if family == "coated":
             _set(p, "coat_weight", _u(n, 0.7, 1.0, g))
-            _set(p, "coat_roughness", _u(n, 0.0, 0.3, g))
+            _set(p, "coat_roughness", _u(n, ROUGHNESS_MIN, 0.35, g))
             _set(p, "coat_ior", torch.rand(n, generator=g))
             _set_rgb(p, "coat_tint", _hue_color(n, 0.0, 0.4, 0.7, 1.0, g))
         else:
-            _set(p, "spec_roughness", _u(n, 0.05, 0.3, g))
+            _set(p, "spec_roughness", _u(n, ROUGHNESS_MIN, 0.35, g))
             _set(p, "haze_weight", _u(n, 0.3, 1.0, g))
             _set(p, "haze_spread", _u(n, 0.2, 1.0, g))
     elif family == "dusty":
@@ -118,6 +122,8 @@ def sample_parameters(family: str, n: int, generator: torch.Generator) -> torch.
         for gate in ("dust_coverage", "fuzz_weight", "coat_weight", "haze_weight", "scatter_weight"):
             on = torch.rand(n, generator=g) < 0.5
             p[:, INDEX[gate]] = torch.where(on, p[:, INDEX[gate]], torch.zeros(n))
+        for name in ("coat_roughness", "spec_roughness"):
+            p[:, INDEX[name]] = ROUGHNESS_MIN + (1 - ROUGHNESS_MIN) * p[:, INDEX[name]]
     return p
 
 

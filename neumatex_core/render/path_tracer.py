@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 
@@ -28,13 +29,17 @@ from neumatex_core.render.scene import Scene
 class PathTracerConfig:
     """max_bounces: surface interactions per path (1 = direct only). rr_depth: bounces before Russian
     roulette starts. spp: samples per pixel. hide_background: camera rays that miss return black.
-    chunk_rays: rays traced at once (bounds memory)."""
+    chunk_rays: rays traced at once (bounds memory). strategy: how emitted light is gathered: "mis" (light and
+    BSDF sampling, balance heuristic), "light" (next-event estimation only: with the same seed, two materials on
+    the same geometry see the same light samples, so their images' noise is correlated; used to compare
+    materials), "bsdf" (escaping BSDF-sampled rays only)."""
 
     max_bounces: int = 3
     rr_depth: int = 3
     spp: int = 16
     hide_background: bool = False
     chunk_rays: int = 1 << 18
+    strategy: Literal["mis", "light", "bsdf"] = "mis"
 
 
 def balance_heuristic(pdf_a: torch.Tensor, pdf_b: torch.Tensor) -> torch.Tensor:
@@ -49,6 +54,8 @@ class PathTracer:
     def __init__(self, config: PathTracerConfig | None = None) -> None:
         self.config = config or PathTracerConfig()
         self.mis_weight: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] = balance_heuristic
+        self.light_weight, self.bsdf_weight = {"mis": (None, None), "light": (1.0, 0.0), "bsdf": (0.0, 1.0)}[
+            self.config.strategy]
 
     def render(
         self,
@@ -100,7 +107,8 @@ class PathTracer:
                 if prev_bsdf_pdf is None:
                     weight = torch.ones(le.shape[0], device=device)
                 else:
-                    weight = self.mis_weight(prev_bsdf_pdf[miss], env.pdf(d[miss]))
+                    weight = (self.mis_weight(prev_bsdf_pdf[miss], env.pdf(d[miss])) if self.bsdf_weight is None
+                              else torch.full((le.shape[0],), self.bsdf_weight, device=device))
                 radiance = radiance.index_add(0, active[miss], throughput[miss] * le * weight.unsqueeze(-1))
             if depth == cfg.max_bounces:
                 break
@@ -120,7 +128,8 @@ class PathTracer:
             above = (wi_l[:, 2] > 0) & ((light_dir * si.geo_normal).sum(-1) > 0) & (light_pdf > 0)
             visible = above & ~scene.raycaster.occluded(si.spawn(light_dir), light_dir)
             f_l = material.eval(wi_l, wo) * wi_l[:, 2].clamp_min(0.0).unsqueeze(-1)
-            w_l = self.mis_weight(light_pdf, material.pdf(wi_l, wo))
+            w_l = (self.mis_weight(light_pdf, material.pdf(wi_l, wo)) if self.light_weight is None
+                   else torch.full_like(light_pdf, self.light_weight))
             scale = torch.where(visible, w_l / light_pdf.clamp_min(1e-30), torch.zeros_like(w_l))
             radiance = radiance.index_add(0, active, throughput * f_l * light_le * scale.unsqueeze(-1))
 

@@ -1,0 +1,261 @@
+"""Training the neural basis on the analytic layered material (`neumatex train-basis`).
+
+Three stages, each drawing fresh samples every step (the analytic material is cheap, so there is no dataset):
+
+1. `bsdf`: encoder + decoder jointly. Loss: L1 between log(f cos_i + EPS) of the decoder and of the analytic
+   f_spec, so the lobe peaks and tails both count (relative error) while values far below what a render can see
+   (EPS) do not.
+2. `aux`: the auxiliary network (T_neu, R_neu) against the analytic T(wo) and R(wo); encoder and decoder frozen.
+3. `sampler`: the sampling network, by maximum likelihood of directions distributed like lum(f_neu) cos_i (the
+   frozen decoder): wi drawn from the analytic material's sampler with weights lum(f_neu cos_i) / pdf, loss the
+   weighted negative log of the mixture pdf (a KL divergence up to a constant).
+
+Samples: parameters from the family prior (3/4, families equally likely) or uniform in [0, 1]^22 (1/4, for
+coverage of the latent space that optimisation may wander into); wo uniform on the hemisphere; wi half from the
+analytic material's importance sampler (the peaks), half uniform (the tails).
+
+Deterministic: step k of a stage draws from a generator seeded by (seed, stage, k), so an interrupted run that is
+resumed from its checkpoint ends with the same weights as an uninterrupted one (same device and thread count).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+
+from neumatex_core.config import option
+from neumatex_core.materials.base import luminance
+from neumatex_core.materials.layered import INDEX, N_PARAMS, LayeredMaterial
+from neumatex_core.materials.neural_basis import BasisArchitecture, NeuralBasis
+from neumatex_core.materials.prior import FAMILIES, ROUGHNESS_MIN, sample_parameters
+
+EPS = 1e-3  # f cos below this (1/sr) is invisible next to any diffuse base; log-space loss floor
+STAGES = ("bsdf", "aux", "sampler")
+STAGE_SEED = {"bsdf": 1, "aux": 2, "sampler": 3, "heldout": 4}
+
+
+@dataclass
+class TrainBasisConfig:
+    """Training schedule of the neural basis."""
+
+    out: str = option("runs/basis", "folder for checkpoints, the trained weights and their record")
+    seed: int = option(0, "random seed (training is deterministic given seed, device and thread count)")
+    batch: int = option(8192, "samples (parameter set, wi, wo) per step")
+    steps_bsdf: int = option(20000, "steps of encoder + decoder training")
+    steps_aux: int = option(4000, "steps of auxiliary-network training")
+    steps_sampler: int = option(4000, "steps of sampling-network training")
+    lr: float = option(2e-3, "peak Adam learning rate (cosine decay to 1% of it)")
+    checkpoint_every: int = option(500, "steps between checkpoints")
+    heldout: int = option(10000, "held-out parameter sets for the final metrics")
+    version: str = option("v1", "basis version label (part of the basis id)")
+    install: bool = option(False, "also copy the trained weights into the package (neumatex_core/materials/data)")
+    device: str = option("auto", "torch device: auto, cpu or cuda")
+
+
+def _generator(seed: int, stage: str, step: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed * 1_000_003 + STAGE_SEED[stage] * 100_000_007 + step)
+
+
+def draw_parameters(n: int, g: torch.Generator) -> torch.Tensor:
+    """[n, 22]: 3/4 from the family prior (families equally likely), 1/4 uniform in [0, 1]."""
+    n_uniform = n // 4
+    per_family = (n - n_uniform + len(FAMILIES) - 1) // len(FAMILIES)
+    prior = torch.cat([sample_parameters(f, per_family, g) for f in FAMILIES])[: n - n_uniform]
+    uniform = torch.rand(n_uniform, N_PARAMS, generator=g)
+    for name in ("coat_roughness", "spec_roughness"):  # the prior's floor: no near-mirror lobes (see prior)
+        uniform[:, INDEX[name]] = ROUGHNESS_MIN + (1 - ROUGHNESS_MIN) * uniform[:, INDEX[name]]
+    params = torch.cat([prior, uniform])
+    return params[torch.randperm(n, generator=g)]
+
+
+def uniform_hemisphere(n: int, g: torch.Generator) -> torch.Tensor:
+    """[n, 3] uniformly distributed directions with z > 0."""
+    u = torch.rand(n, 2, generator=g)
+    z = u[:, 0].clamp_min(1e-4)
+    r = torch.sqrt(1 - z * z)
+    phi = 2 * math.pi * u[:, 1]
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+
+
+@dataclass
+class Batch:
+    params: torch.Tensor  # [N, 22]
+    wi: torch.Tensor  # [N, 3]
+    wo: torch.Tensor  # [N, 3]
+    pdf_analytic: torch.Tensor  # [N] the analytic sampler's pdf of wi (mixture with the uniform half)
+    f_spec: torch.Tensor  # [N, 3]
+    transmission: torch.Tensor  # [N, 3]
+    reflected: torch.Tensor  # [N]
+
+
+def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None) -> Batch:
+    """Training samples on the CPU (the analytic material's tables live there): see the module docstring.
+
+    params: [n, 22] to use instead of `draw_parameters` (e.g. one family's, for per-family metrics)."""
+    params = draw_parameters(n, g) if params is None else params
+    wo = uniform_hemisphere(n, g)
+    material = LayeredMaterial(params, torch.zeros(n, 3))  # no base: sampling follows f_spec's lobes
+    wi_imp, _ = material.sample(wo, torch.rand(n, generator=g), torch.rand(n, 2, generator=g))
+    wi_uni = uniform_hemisphere(n, g)
+    use_imp = torch.rand(n, generator=g) < 0.5
+    wi = torch.where(use_imp.unsqueeze(-1), wi_imp, wi_uni)
+    ok = wi[:, 2] > 1e-4
+    wi = torch.where(ok.unsqueeze(-1), wi, wi_uni)
+    pdf = 0.5 * material.pdf(wi, wo) + 0.5 / (2 * math.pi)
+    with torch.no_grad():
+        f_spec, transmission, reflected = material.components(wi, wo)
+    return Batch(params, wi, wo, pdf, f_spec, transmission, reflected)
+
+
+def log_target(f: torch.Tensor, cos_i: torch.Tensor) -> torch.Tensor:
+    return torch.log(f * cos_i.unsqueeze(-1) + EPS)
+
+
+def bsdf_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
+    latent = basis.encode(b.params)
+    f = torch.exp(basis.log_bsdf(latent, b.wi, b.wo).clamp(max=12.0))
+    cos_i = b.wi[:, 2]
+    return (log_target(f, cos_i) - log_target(b.f_spec, cos_i)).abs().mean()
+
+
+def aux_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
+    with torch.no_grad():
+        latent = basis.encode(b.params)
+    t, r = basis.transmission_reflectance(latent, b.wo)
+    return (t - b.transmission).abs().mean() + (r - b.reflected).abs().mean()
+
+
+def sampler_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
+    from neumatex_core.materials.base import cosine_pdf
+    from neumatex_core.materials.microfacet import ggx_pdf_visible
+
+    with torch.no_grad():
+        latent = basis.encode(b.params)
+        weight = luminance(basis.bsdf(latent, b.wi, b.wo)) * b.wi[:, 2] / b.pdf_analytic.clamp_min(1e-8)
+        weight = weight / weight.sum().clamp_min(1e-12)
+    probs, alphas = basis.lobes(latent, b.wo)
+    pdfs = torch.stack([cosine_pdf(b.wi), ggx_pdf_visible(b.wi, b.wo, alphas[:, 0]),
+                        ggx_pdf_visible(b.wi, b.wo, alphas[:, 1])], dim=-1)  # fmt: skip
+    q = (probs * pdfs).sum(-1)
+    return -(weight * torch.log(q + 1e-6)).sum()
+
+
+LOSSES: dict[str, Callable[[NeuralBasis, Batch], torch.Tensor]] = {
+    "bsdf": bsdf_loss, "aux": aux_loss, "sampler": sampler_loss,
+}
+
+
+def stage_parameters(basis: NeuralBasis, stage: str) -> list[torch.nn.Parameter]:
+    if stage == "bsdf":
+        return [*basis.encoder.parameters(), *basis.decoder.parameters()]
+    if stage == "aux":
+        return list(basis.aux.parameters())
+    return list(basis.sampler.parameters())
+
+
+@torch.no_grad()
+def heldout_metrics(basis: NeuralBasis, n: int, seed: int, device: torch.device) -> dict[str, float]:
+    """Decoder and auxiliary errors on n held-out parameter sets (4 direction pairs each, half importance-sampled).
+
+    bsdf_median_rel_error: median over samples and channels of |f_neu - f| / (f + EPS / cos_i), i.e. relative
+    error where f cos_i is visible; bsdf_log_l1: the training loss; t_mae / r_mae: mean absolute errors.
+    """
+    g = _generator(seed, "heldout", 0)
+    rel, log_l1, t_err, r_err = [], [], [], []
+    for _ in range(4):
+        b = draw_batch(n, g)
+        b = _to(b, device)
+        latent = basis.encode(b.params)
+        f = basis.bsdf(latent, b.wi, b.wo)
+        cos_i = b.wi[:, 2].unsqueeze(-1)
+        rel.append(((f - b.f_spec).abs() / (b.f_spec + EPS / cos_i)).flatten())
+        log_l1.append((log_target(f, b.wi[:, 2]) - log_target(b.f_spec, b.wi[:, 2])).abs().flatten())
+        t, r = basis.transmission_reflectance(latent, b.wo)
+        t_err.append((t - b.transmission).abs().flatten())
+        r_err.append((r - b.reflected).abs())
+    return {
+        "bsdf_median_rel_error": float(torch.cat(rel).median()),
+        "bsdf_log_l1": float(torch.cat(log_l1).mean()),
+        "t_mae": float(torch.cat(t_err).mean()),
+        "r_mae": float(torch.cat(r_err).mean()),
+        "heldout_parameter_sets": float(n),
+    }
+
+
+def _to(b: Batch, device: torch.device) -> Batch:
+    return Batch(*(getattr(b, k).to(device) for k in Batch.__dataclass_fields__))
+
+
+def train_basis(
+    cfg: TrainBasisConfig, device: torch.device, progress: Callable[[str, int, int, float], None] | None = None
+) -> tuple[NeuralBasis, dict[str, object]]:
+    """Run (or resume) the three stages; returns the trained basis and its metrics. Writes out/checkpoint.pt."""
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / "checkpoint.pt"
+    torch.manual_seed(cfg.seed)
+    basis = NeuralBasis(BasisArchitecture()).to(device)
+    history: dict[str, list[float]] = {s: [] for s in STAGES}
+    seconds: dict[str, float] = {s: 0.0 for s in STAGES}
+    start_stage, start_step, opt_state = 0, 0, None
+    if ckpt_path.exists():
+        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
+        if ckpt["config"] != _schedule(cfg):
+            raise ValueError(f"{ckpt_path}: checkpoint was made with a different schedule; use another --out")
+        basis.load_state_dict(ckpt["model"])
+        start_stage, start_step, opt_state = ckpt["stage"], ckpt["step"], ckpt["optimizer"]
+        history, seconds = ckpt["history"], ckpt["seconds"]
+    steps = {"bsdf": cfg.steps_bsdf, "aux": cfg.steps_aux, "sampler": cfg.steps_sampler}
+    for si in range(start_stage, len(STAGES)):
+        stage = STAGES[si]
+        params = stage_parameters(basis, stage)
+        opt = torch.optim.Adam(params, lr=cfg.lr)
+        lr_factor = _cosine_schedule(steps[stage])
+        first = 0
+        if si == start_stage and opt_state is not None:
+            opt.load_state_dict(opt_state)
+            first = start_step
+        basis.train()
+        t0 = time.perf_counter()
+        for step in range(first, steps[stage]):
+            b = _to(draw_batch(cfg.batch, _generator(cfg.seed, stage, step)), device)
+            loss = LOSSES[stage](basis, b)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr * lr_factor(step)
+            opt.step()
+            history[stage].append(float(loss.detach()))
+            if progress is not None:
+                progress(stage, step + 1, steps[stage], history[stage][-1])
+            if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == steps[stage]:
+                seconds[stage] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                done = step + 1 == steps[stage]
+                torch.save({"model": basis.state_dict(), "stage": si + 1 if done else si,
+                            "step": 0 if done else step + 1, "optimizer": None if done else opt.state_dict(),
+                            "history": history, "seconds": seconds, "config": _schedule(cfg)}, ckpt_path)
+        opt_state = None
+    basis.eval()
+    metrics: dict[str, object] = dict(heldout_metrics(basis, cfg.heldout, cfg.seed, device))
+    metrics["train_seconds"] = seconds
+    metrics["final_loss"] = {s: (sum(h[-100:]) / max(len(h[-100:]), 1)) for s, h in history.items()}
+    metrics["config"] = _schedule(cfg)
+    torch.save(history, out / "history.pt")
+    return basis, metrics
+
+
+def _cosine_schedule(total: int) -> Callable[[int], float]:
+    """Learning-rate factor: cosine decay from 1 to 0.01 over `total` steps."""
+    return lambda k: 0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(k / max(total, 1), 1)))
+
+
+def _schedule(cfg: TrainBasisConfig) -> dict[str, object]:
+    """The parts of the config that determine the weights (a checkpoint must match them to be resumed)."""
+    d = asdict(cfg)
+    return {k: d[k] for k in ("seed", "batch", "steps_bsdf", "steps_aux", "steps_sampler", "lr")}
