@@ -48,6 +48,12 @@ class Camera:
         sx, sy = width / self.width, height / self.height
         return Camera(self.c2w, self.fl_x * sx, self.fl_y * sy, self.cx * sx, self.cy * sy, width, height)
 
+    def normalized(self, centre: np.ndarray, scale: float) -> Camera:
+        """The camera in a frame where world points p become (p - centre) * scale (see Mesh.normalized)."""
+        c2w = np.array(self.c2w, dtype=np.float64)
+        c2w[:3, 3] = (c2w[:3, 3] - np.asarray(centre, dtype=np.float64)) * scale
+        return Camera(c2w, self.fl_x, self.fl_y, self.cx, self.cy, self.width, self.height)
+
     def generate_rays(
         self,
         spp: int = 1,

@@ -50,10 +50,14 @@ class Mesh:
         radius = float(np.linalg.norm(self.vertices - centre, axis=1).max())
         return centre.astype(np.float32), radius
 
+    def normalization(self, radius: float = 1.0) -> tuple[np.ndarray, float]:
+        """(centre [3], scale) with which `normalized` maps a point p to (p - centre) * scale."""
+        centre, r = self.bounding_sphere()
+        return centre, radius / max(r, 1e-12)
+
     def normalized(self, radius: float = 1.0) -> Mesh:
         """The mesh centred at the origin and scaled so that it fits in a sphere of `radius`."""
-        centre, r = self.bounding_sphere()
-        scale = radius / max(r, 1e-12)
+        centre, scale = self.normalization(radius)
         return Mesh(
             vertices=((self.vertices - centre) * scale).astype(np.float32),
             faces=self.faces,
