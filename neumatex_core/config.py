@@ -1,7 +1,8 @@
 """Typed configuration dataclasses and the command-line options generated from them (nerfstudio-style).
 
 Each command's options are the fields of one dataclass: the field name gives the flag (`--max-bounces`),
-the type its parser, the default its default, and the `help` metadata its help text.
+the type its parser, the default its default, and the `help` metadata its help text. A field declared with
+`option(..., positional=True)` may also be given as an optional positional argument (`neumatex render ASSET`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import typing
 from typing import Any, TypeVar
 
 C = TypeVar("C")
+POSITIONAL_SUFFIX = "_positional"
 
 
 def option(default: Any, help: str, **kw: Any) -> Any:  # noqa: A002 - mirrors argparse's name
@@ -39,6 +41,9 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         else:
             default = None
         helptext = f"{f.metadata.get('help', '')} (default: {default})"
+        if f.metadata.get("positional"):
+            parser.add_argument(f.name + POSITIONAL_SUFFIX, nargs="?", default=None, metavar=f.name.upper(),
+                                help=f"{f.metadata.get('help', '')} (same as {flag})")
         if typ is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=helptext)
         elif typing.get_origin(typ) is tuple:
@@ -61,5 +66,10 @@ def config_from_args(cls: type[C], ns: argparse.Namespace) -> C:
     values = {}
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
         value = getattr(ns, f.name)
+        given = getattr(ns, f.name + POSITIONAL_SUFFIX, None) if f.metadata.get("positional") else None
+        if given is not None:
+            if value != f.default and value != given:
+                raise ValueError(f"{f.name.upper()} given twice ({given!r} and --{f.name.replace('_', '-')} {value!r})")
+            value = given
         values[f.name] = tuple(value) if isinstance(value, list) else value
     return cls(**values)

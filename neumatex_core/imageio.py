@@ -6,6 +6,7 @@ e.g. sRGB for a photo), float formats as stored (linear HDR for EXR/HDR).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -51,9 +52,12 @@ def image_size(path: str | Path) -> tuple[int, int]:
     return int(spec.width), int(spec.height)
 
 
-def write_image(path: str | Path, pixels: np.ndarray) -> None:
+def write_image(path: str | Path, pixels: np.ndarray, channel_names: Sequence[str] | None = None) -> None:
     """Write float [H, W, C] (or [H, W]) pixels. EXR/HDR keep float32 (half for .exr would lose the sun);
-    PNG/JPEG get 8-bit (or 16-bit for .png when the array is uint16) after clipping to [0, 1]."""
+    PNG/JPEG get 8-bit (or 16-bit for .png when the array is uint16) after clipping to [0, 1].
+
+    The file holds no time stamp (OpenImageIO would add EXR's DateTime), so the same pixels give the same bytes
+    (synthetic data is checked bit for bit). `channel_names` names the channels (EXR), e.g. a 6-channel latent."""
     import OpenImageIO as oiio
 
     path = Path(path)
@@ -74,6 +78,11 @@ def write_image(path: str | Path, pixels: np.ndarray) -> None:
     if out is None:
         raise ImageError(f"{path}: no writer for this file type ({oiio.geterror()})")
     spec = oiio.ImageSpec(w, h, c, fmt)
+    spec.attribute("DateTime", "")
+    if channel_names is not None:
+        if len(channel_names) != c:
+            raise ImageError(f"{path}: {len(channel_names)} channel names for {c} channels")
+        spec.channelnames = tuple(channel_names)
     if not out.open(str(path), spec) or not out.write_image(data):
         msg = out.geterror()
         out.close()

@@ -81,7 +81,7 @@ class Mesh:
         return Mesh(self.vertices, self.faces, normals.astype(np.float32), self.uvs)
 
     def torch(self, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
-        """Tensors for shading: vertices, faces, face normals and (optional) vertex normals."""
+        """Tensors for shading: vertices, faces, face normals, (optional) vertex normals and uvs."""
         out = {
             "vertices": torch.from_numpy(self.vertices).to(device),
             "faces": torch.from_numpy(self.faces).to(device),
@@ -89,6 +89,8 @@ class Mesh:
         }
         if self.vertex_normals is not None:
             out["vertex_normals"] = torch.from_numpy(self.vertex_normals).to(device)
+        if self.uvs is not None:
+            out["uvs"] = torch.from_numpy(self.uvs).to(device)
         return out
 
 

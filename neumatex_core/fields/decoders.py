@@ -1,0 +1,96 @@
+"""Small MLP decoders from triplane features [N, F] (F = 3C) to per-point G-buffers (paper eq. 3-6).
+
+- `MaterialDecoder` (M_mat): rho_d [N, 3] in [0, 1] (sigmoid) and latent l [N, 6] in [-1, 1] (tanh);
+- `UncertaintyDecoder` (M_unc): 9 log-variances [N, 9] (rho_d then l), unbounded;
+- `PBRDecoder` (the LMRM's PBR head): base colour [N, 3], roughness [N], metallic [N], all in [0, 1] (sigmoid).
+
+Each is Linear+SiLU x `layers` (width `hidden`) with a linear output; `architecture()` gives the constructor
+arguments, so an asset can rebuild the module from its record. `module_id` names a decoder by its class and the
+SHA-256 of its weights: an asset records it and the reader checks it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import torch
+from torch import nn
+
+from neumatex_core.materials.neural_basis import LATENT_DIM
+
+N_MATERIAL = 3 + LATENT_DIM  # rho_d + latent: the material G-buffer's channels
+
+
+def _mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    for _ in range(layers):
+        mods += [nn.Linear(n_in, hidden), nn.SiLU()]
+        n_in = hidden
+    mods.append(nn.Linear(n_in, n_out))
+    return nn.Sequential(*mods)
+
+
+class _Decoder(nn.Module):
+    kind = "decoder"
+    n_out = 0
+
+    def __init__(self, in_features: int, hidden: int = 64, layers: int = 2) -> None:
+        super().__init__()
+        self.in_features, self.hidden, self.layers = in_features, hidden, layers
+        self.net = _mlp(in_features, hidden, layers, self.n_out)
+
+    def architecture(self) -> dict[str, Any]:
+        """Constructor arguments (JSON-able): `type(self)(**architecture())` has the same shapes."""
+        return {"in_features": self.in_features, "hidden": self.hidden, "layers": self.layers}
+
+
+class MaterialDecoder(_Decoder):
+    """M_mat: features [N, F] -> (rho_d [N, 3] in [0, 1], latent [N, 6] in [-1, 1])."""
+
+    kind = "material"
+    n_out = N_MATERIAL
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.net(features)
+        return torch.sigmoid(out[:, :3]), torch.tanh(out[:, 3:])
+
+
+class UncertaintyDecoder(_Decoder):
+    """M_unc: features [N, F] -> log-variances [N, 9] of (rho_d, latent)."""
+
+    kind = "uncertainty"
+    n_out = N_MATERIAL
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net(features)
+
+
+class PBRDecoder(_Decoder):
+    """PBR head: features [N, F] -> (base colour [N, 3], roughness [N], metallic [N]), all in [0, 1]."""
+
+    kind = "pbr"
+    n_out = 5
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        out = torch.sigmoid(self.net(features))
+        return out[:, :3], out[:, 3], out[:, 4]
+
+
+DECODERS: dict[str, type[_Decoder]] = {cls.kind: cls for cls in (MaterialDecoder, UncertaintyDecoder, PBRDecoder)}
+
+
+def state_hash(module: nn.Module) -> str:
+    """SHA-256 over the module's state (names, shapes and float32 bytes, in key order)."""
+    h = hashlib.sha256()
+    for name, t in sorted(module.state_dict().items()):
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def module_id(module: nn.Module) -> str:
+    """'<kind>-<first 16 hex digits of state_hash>', e.g. 'material-3fa2...'."""
+    kind = getattr(module, "kind", type(module).__name__.lower())
+    return f"{kind}-{state_hash(module)[:16]}"

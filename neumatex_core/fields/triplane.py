@@ -1,0 +1,64 @@
+"""The feature triplane (DESIGN.md section 5): three axis-aligned feature planes over the cube [-1, 1]^3.
+
+A point p = (x, y, z) reads one bilinearly interpolated C-vector from each plane and the three are concatenated:
+
+    features(p) = [XY(x, y), YZ(y, z), XZ(x, z)]   -> [3C]
+
+Plane k is stored as planes[k] [C, R, R]; its first coordinate indexes the columns (width), the second the rows
+(height), as in `torch.nn.functional.grid_sample` (align_corners=False: coordinate -1 is the outer edge of the
+first texel; points outside the cube read the border texels). Objects are normalised into the unit sphere, so
+every surface point lies inside the cube. Gradients flow to `planes` (the LMRM predicts them, TTO optimises them).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+PLANE_AXES = ((0, 1), (1, 2), (0, 2))  # XY, YZ, XZ: which coordinates of p address plane k (width, height)
+
+
+class Triplane(nn.Module):
+    """Learnable planes [3, C, R, R]. `features(points [N, 3]) -> [N, 3C]` (see the module docstring)."""
+
+    def __init__(self, channels: int = 16, resolution: int = 64, init_std: float = 0.1,
+                 generator: torch.Generator | None = None) -> None:
+        super().__init__()
+        planes = torch.randn(3, channels, resolution, resolution, generator=generator) * init_std
+        self.planes = nn.Parameter(planes)
+
+    @classmethod
+    def from_planes(cls, planes: torch.Tensor) -> Triplane:
+        """A triplane holding a copy of `planes` [3, C, R, R] (e.g. an LMRM prediction or a loaded asset)."""
+        if planes.dim() != 4 or planes.shape[0] != 3 or planes.shape[2] != planes.shape[3]:
+            raise ValueError(f"triplane planes must be [3, C, R, R], got {tuple(planes.shape)}")
+        tp = cls(int(planes.shape[1]), int(planes.shape[2]), init_std=0.0)
+        with torch.no_grad():
+            tp.planes.copy_(planes.to(tp.planes.dtype))
+        return tp.to(planes.device)
+
+    @property
+    def channels(self) -> int:
+        return int(self.planes.shape[1])
+
+    @property
+    def resolution(self) -> int:
+        return int(self.planes.shape[2])
+
+    @property
+    def feature_dim(self) -> int:
+        """3C: the width of `features`."""
+        return 3 * self.channels
+
+    def features(self, points: torch.Tensor) -> torch.Tensor:
+        """Bilinear features [N, 3C] at world points [N, 3] (in [-1, 1]^3; outside reads the border)."""
+        if points.dim() != 2 or points.shape[-1] != 3:
+            raise ValueError(f"points must be [N, 3], got {tuple(points.shape)}")
+        p = points.to(self.planes.dtype)
+        grid = torch.stack([p[:, list(axes)] for axes in PLANE_AXES]).unsqueeze(1)  # [3, 1, N, 2]
+        out = F.grid_sample(self.planes, grid, mode="bilinear", padding_mode="border", align_corners=False)
+        return out[:, :, 0, :].permute(2, 0, 1).reshape(points.shape[0], -1)  # [3, C, N] -> [N, 3C]
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.features(points)
