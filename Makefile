@@ -10,7 +10,7 @@ SHARED ?= $(abspath ../shared)
 LLVM19 := /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
 export DRJIT_LIBLLVM_PATH ?= $(LLVM19)
 
-.PHONY: install sysdeps demo test lint bench clean
+.PHONY: install sysdeps demo test lint bench clean serve
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -29,24 +29,31 @@ $(SYSSTAMP): | $(STAMP)
 	touch $(SYSSTAMP)
 
 sysdeps: $(SYSSTAMP)
+	@command -v redis-server >/dev/null || { SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q redis-server; }
 
+# A real extraction (CPU preset) of the bundled example capture; rerunning resumes from out/demo/work.
+# --init auto: LMRM initialisation when the shipped LMRM checkpoint loads, else a random triplane (no anchor).
 demo: install
-	$(VENV)/bin/neumatex render --mesh $(SHARED)/data/meshes/suzanne.obj \
-	  --envmap $(SHARED)/data/envmaps/courtyard.exr --out out/demo --resolution 192 --spp 64 \
-	  --base-color 0.75 0.35 0.2 --roughness 0.35 --metallic 0.0
-	@echo "demo: open out/demo/views.png (23 preset views; EXR + PNG per view in out/demo/)"
+	$(VENV)/bin/neumatex extract examples/teapot --out out/demo/teapot-asset --work out/demo/work \
+	  --preset cpu --init auto
+	@echo "demo: open out/demo/teapot-asset/report/index.html (asset package in out/demo/teapot-asset/)"
 
 test: install sysdeps
-	$(VENV)/bin/ruff check neumatex_core tests bench
-	$(VENV)/bin/mypy neumatex_core
+	$(VENV)/bin/ruff check neumatex_core services workers tests bench
+	$(VENV)/bin/mypy neumatex_core services workers
 	NEUMATEX_SHARED=$(SHARED) $(PY) -m pytest -q
 
 lint: install
-	$(VENV)/bin/ruff check neumatex_core tests bench
-	$(VENV)/bin/mypy neumatex_core
+	$(VENV)/bin/ruff check neumatex_core services workers tests bench
+	$(VENV)/bin/mypy neumatex_core services workers
 
 bench: install sysdeps
 	$(PY) bench/render.py
+
+# The job service on this machine: redis-server (apt), the API and one worker; prints the dashboard URL.
+serve: install sysdeps
+	$(PY) -m services serve
 
 clean:
 	rm -rf out .pytest_cache .mypy_cache .ruff_cache

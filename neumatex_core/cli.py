@@ -10,14 +10,23 @@ from pathlib import Path
 from typing import Any, Literal
 
 from neumatex_core.config import add_config_arguments, config_from_args, option
+from neumatex_core.eval.suite import EvalConfig, run_eval_command
+from neumatex_core.extract_cli import ExtractCommandConfig, run_extract
+from neumatex_core.lmrm.train import TrainLMRMConfig
 from neumatex_core.materials.basis_training import TrainBasisConfig
+from neumatex_core.synth.config import SynthConfig
+from neumatex_core.synth.sheets import SheetsConfig, run_sheets
 
 
 @dataclass
 class RenderConfig:
-    """`neumatex render`: a mesh with a PBR material under an environment map, from the preset views or a
-    capture's cameras, to linear EXR and tonemapped PNG files."""
+    """`neumatex render`: a material asset, or a mesh with a PBR material, under an environment map, from the preset
+    views or a capture's cameras, to linear EXR and tonemapped PNG files."""
 
+    asset: str = option("", "material asset package (folder or .zip) to re-render", positional=True)
+    material: Literal["auto", "triplane", "textures", "pbr"] = option(
+        "auto", "which representation of the asset: its own field (auto), the triplane, the baked neural UV "
+        "textures or the PBR fallback")
     mesh: str = option("", "mesh file (OBJ/PLY/GLB); normalised into the unit sphere")
     envmap: str = option("", "equirectangular HDR environment map (EXR/HDR)")
     capture: str = option("", "render a capture (folder or zip): its mesh, envmap, cameras and tonemap")
@@ -27,7 +36,7 @@ class RenderConfig:
     spp: int = option(64, "samples per pixel")
     max_bounces: int = option(3, "surface interactions per path (1 = direct lighting only)")
     seed: int = option(0, "random seed (view i uses seed + i)")
-    base_color: tuple[float, float, float] = option((0.8, 0.8, 0.8), "PBR base colour, linear RGB")
+    base_color: tuple[float, float, float] = option((0.8, 0.8, 0.8), "PBR base colour, linear RGB (mesh mode)")
     roughness: float = option(0.5, "PBR roughness in [0, 1]")
     metallic: float = option(0.0, "PBR metallic in [0, 1]")
     exposure: float = option(1.0, "tonemap exposure for the PNGs (a capture's own tonemap wins)")
@@ -54,6 +63,7 @@ def _select_views(spec: str, n: int) -> list[int]:
 
 def run_render(cfg: RenderConfig) -> int:
     """Render and write files; returns the exit code."""
+    import numpy as np
     import torch
     from tqdm import tqdm
 
@@ -62,26 +72,42 @@ def run_render(cfg: RenderConfig) -> int:
     from neumatex_core.geometry import load_mesh, preset_views
     from neumatex_core.imageio import write_image
     from neumatex_core.lighting import EnvironmentMap
-    from neumatex_core.materials.field import UniformPBR
+    from neumatex_core.materials.field import MaterialField, UniformPBR
     from neumatex_core.render import PathTracer, PathTracerConfig, Scene
     from neumatex_core.render.views import contact_sheet, render_views
 
     device = default_device() if cfg.device == "auto" else torch.device(cfg.device)
+    if cfg.asset and cfg.mesh:
+        raise ValueError("give an asset or --mesh, not both")
+    asset = None
+    if cfg.asset:
+        from neumatex_core.assets import read_asset
+
+        asset = read_asset(cfg.asset, device=device)
     if cfg.capture:
         capture = load_capture(cfg.capture)
-        mesh = capture.load_mesh(smooth=not cfg.flat_shading)
-        envmap = EnvironmentMap.from_file(capture.envmap_path, capture.envmap_to_world, capture.envmap_scale, device)
+        envmap_path = cfg.envmap or capture.envmap_path
+        to_world, scale = (None, 1.0) if cfg.envmap else (capture.envmap_to_world, capture.envmap_scale)
+        envmap = EnvironmentMap.from_file(envmap_path, to_world, scale, device)
         cameras = [f.camera for f in capture.frames]
+        if asset is not None and asset.centre is not None and asset.scale is not None:
+            cameras = [c.normalized(np.asarray(asset.centre), asset.scale) for c in cameras]  # into object space
         tonemap = capture.tonemap
+        mesh = asset.mesh if asset is not None else capture.load_mesh(smooth=not cfg.flat_shading)
     else:
-        if not cfg.mesh or not cfg.envmap:
-            raise ValueError("give --capture, or both --mesh and --envmap")
-        mesh = load_mesh(cfg.mesh, smooth=not cfg.flat_shading).normalized()
+        if not cfg.envmap or not (cfg.mesh or asset is not None):
+            raise ValueError("give ASSET --envmap MAP, --mesh and --envmap, or --capture")
+        mesh = asset.mesh if asset is not None else load_mesh(cfg.mesh, smooth=not cfg.flat_shading).normalized()
         envmap = EnvironmentMap.from_file(cfg.envmap, device=device)
         presets = preset_views(cfg.resolution)
         cameras = [presets[i] for i in _select_views(cfg.views, len(presets))]
         tonemap = Tonemap(exposure=cfg.exposure)
-    material = UniformPBR(cfg.base_color, cfg.roughness, cfg.metallic)
+    if asset is not None:
+        material: MaterialField = asset.field(cfg.material)
+        print(f"asset {asset.name}: {asset.field_kind} field, rendering {cfg.material} "
+              f"({asset.texture_resolution}^2 textures, basis {asset.basis.basis_id})")
+    else:
+        material = UniformPBR(cfg.base_color, cfg.roughness, cfg.metallic)
     scene = Scene(mesh, envmap, material, device=device)
     tracer = PathTracer(PathTracerConfig(max_bounces=cfg.max_bounces, spp=cfg.spp))
     out = Path(cfg.out)
@@ -178,10 +204,88 @@ def run_gallery(cfg: GalleryConfig) -> int:
     return 0
 
 
+@dataclass
+class ExportConfig:
+    """`neumatex export`: an asset's PBR fallback as glTF 2.0 (GLB) or USD (UsdPreviewSurface), or its baked
+    textures (EXR latents and base colour, PNG PBR maps, the mesh with its uvs), into a folder."""
+
+    asset: str = option("", "material asset package (folder or .zip)", positional=True)
+    format: Literal["glb", "usd", "textures"] = option("glb", "what to export")
+    out: str = option("out/export", "output folder")
+
+
+def run_export(cfg: ExportConfig) -> int:
+    from neumatex_core.assets import read_asset
+    from neumatex_core.assets.export import export_asset
+
+    if not cfg.asset:
+        raise ValueError("give the asset to export (neumatex export ASSET --format glb|usd|textures)")
+    asset = read_asset(cfg.asset)
+    files = export_asset(asset, cfg.format, cfg.out)
+    print(f"wrote {cfg.format} of {asset.name}: " + ", ".join(str(f) for f in files))
+    return 0
+
+
+def run_synth(cfg: SynthConfig) -> int:
+    """Make (or resume) a synthetic dataset split; prints where it is and whether it is complete."""
+    from tqdm import tqdm
+
+    from neumatex_core.synth.dataset import generate
+
+    with tqdm(unit="object", desc=f"synth {cfg.split}", disable=not cfg.progress) as bar:
+        def progress(done: int, total: int, record: dict[str, Any] | None) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+            if record is not None:
+                bar.set_postfix(last=record["id"], s=record["seconds"])
+            bar.refresh()
+
+        result = generate(cfg, progress)
+    state = "complete" if result.complete else "incomplete (other shards or objects missing)"
+    print(f"made {len(result.made)} objects, {result.skipped} already there, in {result.seconds:.1f} s; "
+          f"{result.manifest}: {state}")
+    return 0
+
+
+def run_train_lmrm(cfg: TrainLMRMConfig) -> int:
+    """Train (or resume) the LMRM with a progress bar; prints the validation PSNRs and where the weights are."""
+    from tqdm import tqdm
+
+    from neumatex_core.lmrm.train import train_lmrm
+
+    bar = tqdm(total=cfg.steps, desc="train-lmrm", unit="step")
+
+    def progress(step: int, total: int, row: dict[str, float]) -> None:
+        bar.update(step - bar.n)
+        if step % 10 == 0 or step == total:
+            bar.set_postfix(stage=int(row["stage"]), loss=f"{row['loss']:.4f}", mat=f"{row['l_mat']:.4f}")
+
+    result = train_lmrm(cfg, progress)
+    bar.close()
+    if not result.finished:
+        print(f"stopped at step {result.steps_done}/{cfg.steps} (--max-minutes); rerun the same command to resume "
+              f"from {result.out / 'checkpoint.pt'}")
+        return 0
+    val = result.metrics.get("validation", {})
+    if val:
+        print(f"validation: PSNR_BaseColor {val['psnr_basecolor']:.2f} dB, PSNR_Latents {val['psnr_latents']:.2f} dB "
+              f"(mean material {val.get('mean_psnr_basecolor', float('nan')):.2f} / "
+              f"{val.get('mean_psnr_latents', float('nan')):.2f} dB)")
+    print(f"wrote {result.out / 'lmrm.safetensors'} and lmrm.json, curves in {result.out / 'curves.png'}"
+          + (" (installed into the package)" if cfg.install else ""))
+    return 0
+
+
 COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
     "render": (RenderConfig, run_render),
+    "export": (ExportConfig, run_export),
     "train-basis": (TrainBasisConfig, run_train_basis),
     "gallery": (GalleryConfig, run_gallery),
+    "synth": (SynthConfig, run_synth),
+    "synth-sheets": (SheetsConfig, run_sheets),
+    "train-lmrm": (TrainLMRMConfig, run_train_lmrm),
+    "extract": (ExtractCommandConfig, run_extract),
+    "eval": (EvalConfig, run_eval_command),
 }
 
 

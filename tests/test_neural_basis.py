@@ -76,7 +76,9 @@ def test_asset_basis_id_check(basis) -> None:  # type: ignore[no-untyped-def]
         check_basis_id("nmx-basis-v0-000000000000", "0" * 64, basis)
 
 
-def _reference_directions(wo: torch.Tensor, alphas: torch.Tensor, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def _reference_directions(
+    wo: torch.Tensor, alphas: torch.Tensor, g: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Directions for reference integrals, independent of the sampler under test: an equal mixture of uniform
     hemisphere sampling and classic NDF sampling (h ~ D(h) cos theta_h, reflected) of two GGX lobes of widths
     `alphas` [N, 2], so sharp lobes are covered (uniform sampling alone misses them and under-reports its own

@@ -1,0 +1,81 @@
+"""Ground-truth G-buffers of a synthetic object (written by `neumatex synth`) and the G-buffer metrics.
+
+`ground_truth(object_dir, views)` reads the preset views' position / base colour / latent buffers at their covered
+pixels; `truth_lookup` turns them into a function of surface points (nearest stored pixel: what reg="oracle"
+needs); `gbuffer_psnr` gives PSNR_BaseColor (rho_d) and PSNR_Latents ((l + 1) / 2) of any G-buffer function over
+those pixels (DESIGN.md section 2: covered pixels only).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from neumatex_core.imageio import read_image
+
+GBufferFn = Callable[[torch.Tensor], torch.Tensor]  # points [N, 3] -> (rho_d, latent) [N, 9]
+
+
+@dataclass
+class GroundTruth:
+    """points [M, 3] (covered pixel centres of the chosen views, world frame), values [M, 9] (rho_d, latent),
+    view [M] index of the view each pixel belongs to."""
+
+    points: torch.Tensor
+    values: torch.Tensor
+    view: torch.Tensor
+
+
+def ground_truth(object_dir: str | Path, views: Sequence[int] | None = None) -> GroundTruth:
+    """The stored ground truth of `views` (default: all frames with G-buffers) of a synthetic object folder.
+    Raises ValueError naming the file when the folder has no G-buffers (not a synthetic object)."""
+    root = Path(object_dir)
+    transforms = root / "transforms.json"
+    try:
+        frames = json.loads(transforms.read_text())["frames"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{transforms}: cannot read the frames ({exc})") from None
+    picks = list(range(len(frames))) if views is None else list(views)
+    pts, vals, idx = [], [], []
+    for v in picks:
+        g = frames[v].get("gbuffers")
+        if not g or not all(k in g for k in ("position", "basecolor", "latent")):
+            raise ValueError(f"{transforms}: frame {v} has no ground-truth G-buffers (not a synthetic object)")
+        mask = read_image(root / frames[v]["mask_path"])[:, :, 0] > 0.5
+        pts.append(read_image(root / g["position"])[mask])
+        vals.append(np.concatenate([read_image(root / g["basecolor"])[mask], read_image(root / g["latent"])[mask]], 1))
+        idx.append(np.full(int(mask.sum()), v))
+    return GroundTruth(torch.from_numpy(np.concatenate(pts)).float(), torch.from_numpy(np.concatenate(vals)).float(),
+                       torch.from_numpy(np.concatenate(idx)))  # fmt: skip
+
+
+def truth_lookup(gt: GroundTruth, chunk: int = 4096) -> GBufferFn:
+    """points [N, 3] -> the values [N, 9] of the nearest ground-truth pixel."""
+    def lookup(points: torch.Tensor) -> torch.Tensor:
+        src = gt.points.to(points.device)
+        out = []
+        for s in range(0, points.shape[0], chunk):
+            out.append(torch.cdist(points[s:s + chunk], src).argmin(1))
+        return gt.values.to(points.device)[torch.cat(out)]
+
+    return lookup
+
+
+def _psnr(mse: float) -> float:
+    return math.inf if mse == 0 else 10 * math.log10(1 / mse)
+
+
+def gbuffer_psnr(fn: GBufferFn, gt: GroundTruth, chunk: int = 1 << 15) -> dict[str, float]:
+    """{'psnr_basecolor', 'psnr_latents'} (dB) of fn's G-buffers against the ground truth over its pixels."""
+    with torch.no_grad():
+        pred = torch.cat([fn(gt.points[s:s + chunk]).cpu() for s in range(0, gt.points.shape[0], chunk)])
+    truth = gt.values
+    rho = float(((pred[:, :3].double() - truth[:, :3].double()) ** 2).mean())
+    lat = float((((pred[:, 3:].double() - truth[:, 3:].double()) / 2) ** 2).mean())
+    return {"psnr_basecolor": _psnr(rho), "psnr_latents": _psnr(lat)}

@@ -1,0 +1,172 @@
+"""One synthetic object under one TTO variant: the numbers of the paper's tables (the per-object step of
+`neumatex eval`).
+
+    metrics = evaluate_variant(object_dir, work, "ours", ExtractConfig.preset("cpu"))
+
+The shared stages (validate, prepare_views, lmrm) run once per object through `pipeline.run_stage` in `work`;
+each variant's TTO runs from the stored prediction (`variant_config` on the config's TTO preset) and is scored:
+PSNR_BaseColor and PSNR_Latents against the ground-truth G-buffers of the preset views, PSNR_PathTrace of the
+orbital views (tonemapped, covered pixels, against the stored photos: the same sample count on both sides and a
+fixed seed), and the TTO's minutes (wall and CPU).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from neumatex_core.capture import load_capture
+from neumatex_core.eval.gbuffers import GroundTruth, gbuffer_psnr, ground_truth, truth_lookup
+from neumatex_core.eval.metrics import psnr
+from neumatex_core.eval.variants import variant_config
+from neumatex_core.geometry.camera import PRESET_ORBIT_VIEWS
+from neumatex_core.geometry.gbuffer import render_gbuffer
+from neumatex_core.lmrm.inference import LMRMPrediction
+from neumatex_core.materials.field import MaterialField
+from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage
+from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
+from neumatex_core.render.scene import Scene
+from neumatex_core.tto import PhotoSet, build_problem, optimise
+from neumatex_core.tto.params import NeuralTriplane, Parametrisation, PBRTriplane
+
+
+def _render_psnr(object_dir: Path, field: MaterialField, views: Sequence[int], spp: int, max_bounces: int,
+                 seed: int, mesh_uv: Any = None) -> float:
+    """Mean PSNR_PathTrace (dB) of `field` on the capture's frames `views` against its stored photos."""
+    cap = load_capture(object_dir)
+    mesh = mesh_uv if mesh_uv is not None else cap.load_mesh()
+    env_scene = Scene(mesh, _envmap(cap), field)
+    tracer = PathTracer(PathTracerConfig(spp=spp, max_bounces=max_bounces))
+    scores = []
+    for v in views:
+        cam = cap.frames[v].camera
+        with torch.no_grad():
+            image = cap.tonemap.apply(tracer.render(env_scene, cam, seed=seed + v)).cpu()
+        mask = render_gbuffer(mesh, cam).mask
+        user = cap.load_mask(v)
+        if user is not None:
+            mask = mask & torch.as_tensor(user)
+        scores.append(psnr(image, torch.as_tensor(cap.load_image(v)), mask))
+    return float(sum(scores) / len(scores))
+
+
+def _envmap(cap: Any) -> Any:
+    from neumatex_core.lighting.envmap import EnvironmentMap
+
+    return EnvironmentMap(cap.load_envmap(), cap.envmap_to_world, 1.0)
+
+
+def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: GroundTruth, uv_mesh: Any) -> Any:
+    """points -> [N, 9] for the G-buffer metrics (PBR: base colour and NaN latents)."""
+    if params is None:
+        return lambda p: torch.cat(pred.material_decoder(pred.triplane.features(p)), dim=-1)
+    if isinstance(params, NeuralTriplane):
+        return lambda p: params.gbuffer(p, None)
+    if isinstance(params, PBRTriplane):
+        return lambda p: torch.cat([params.gbuffer(p, None)[:, :3], torch.full((p.shape[0], 6), math.nan)], -1)
+    # UV fields: read the texture at the uv of the nearest point of the unwrapped mesh's vertices' triangles.
+    from neumatex_core.tto.data import surface_samples
+
+    pool, pool_uv = surface_samples(uv_mesh, 1 << 16, seed=1)
+    assert pool_uv is not None
+
+    def uv_values(p: torch.Tensor) -> torch.Tensor:
+        nearest = torch.cat([torch.cdist(p[s:s + 4096], pool).argmin(1) for s in range(0, p.shape[0], 4096)])
+        values = params.gbuffer(p, pool_uv[nearest])
+        if values.shape[-1] == 5:
+            values = torch.cat([values[:, :3], torch.full((p.shape[0], 6), math.nan)], -1)
+        return values
+
+    return uv_values
+
+
+def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, config: ExtractConfig,
+                     render_views: Sequence[int] = tuple(range(PRESET_ORBIT_VIEWS)), render_spp: int | None = None,
+                     render_bounces: int = 3, relight_views: Sequence[int] = (),
+                     figure_dir: str | Path | None = None) -> dict[str, float]:
+    """The table numbers of one variant on one synthetic object (see the module docstring). `render_spp`
+    defaults to the sample count the object's photos were made with (its synth.json / meta.json content).
+
+    relight_views: frames of each held-out lighting (`relight/K` of the object) to score as `psnr_relight`
+    (mean over maps and frames, at the relight photos' own sample count); empty: none.
+    figure_dir: when given, writes the variant's pictures of preset view 0 there (`render.png` tonemapped,
+    `basecolor.png` sRGB, `latent.png` channels 0-2 as (l + 1) / 2; uncovered pixels white)."""
+    object_dir, work = Path(object_dir), Path(work)
+    for stage in ("validate", "prepare_views", "lmrm"):
+        run_stage(stage, object_dir, work, config)
+    pred, record = load_prediction(work)
+    if not record["trained"]:
+        raise ValueError(f"{work}: evaluation needs a trained LMRM (the lmrm stage fell back to a random start)")
+    if render_spp is None:
+        meta = json.loads((object_dir / "meta.json").read_text())
+        render_spp = int(meta["content"]["spp"])
+    gt = ground_truth(object_dir)
+    tto = variant_config(variant, config.tto_config())
+    cap = load_capture(object_dir)
+    mesh = cap.load_mesh()
+    env = _envmap(cap)
+    t0, c0 = time.perf_counter(), time.process_time()
+    params: Parametrisation | None = None
+    scene_mesh = mesh
+    if tto is not None:
+        photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
+                          [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
+        truth = truth_lookup(gt) if tto.reg == "oracle" else None
+        problem = build_problem(tto, mesh, env, photos, cap.tonemap, pred, load_basis(), truth=truth)
+        result = optimise(problem, tto)
+        params, scene_mesh = result.params, problem.mesh
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    basis = load_basis()
+    from neumatex_core.fields.neural_field import TriplaneMaterialField
+
+    field = params.field() if params is not None else TriplaneMaterialField(pred.triplane, pred.material_decoder, basis)
+    gfn = _gbuffer_fn(params, pred, gt, scene_mesh)
+    scores = gbuffer_psnr(gfn, gt)
+    path = _render_psnr(object_dir, field, render_views, render_spp, render_bounces, config.seed, scene_mesh)
+    out = {**scores, "psnr_pathtrace": path, "tto_minutes": seconds / 60, "tto_cpu_minutes": cpu / 60}
+    if relight_views:
+        relit = []
+        maps = sorted(p for p in (object_dir / "relight").glob("*") if (p / "transforms.json").is_file())
+        for folder in maps:
+            spp = int(json.loads((object_dir / "meta.json").read_text())["content"].get("relight_spp", render_spp))
+            relit.append(_render_psnr(folder, field, relight_views, spp, render_bounces, config.seed, scene_mesh))
+        out["psnr_relight"] = float(sum(relit) / len(relit)) if relit else math.nan
+    if figure_dir is not None:
+        write_figures(Path(figure_dir), cap, field, gfn, scene_mesh, render_spp, render_bounces, config.seed)
+    return out
+
+
+def write_figures(folder: Path, cap: Any, field: MaterialField, gfn: Any, mesh: Any, spp: int, bounces: int,
+                  seed: int, view: int = 0) -> None:
+    """render.png, basecolor.png, latent.png of frame `view` of `cap` (see `evaluate_variant`)."""
+    from neumatex_core.capture.tonemap import srgb_oetf_numpy
+    from neumatex_core.imageio import write_image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cam = cap.frames[view].camera
+    tracer = PathTracer(PathTracerConfig(spp=spp, max_bounces=bounces))
+    with torch.no_grad():
+        image = cap.tonemap.apply(tracer.render(Scene(mesh, _envmap(cap), field), cam, seed=seed + view)).cpu()
+        g = render_gbuffer(mesh, cam)
+        mask = g.mask.reshape(-1)
+        values = torch.ones(mask.shape[0], 9)
+        if bool(mask.any()):
+            values[mask] = gfn(g.position.reshape(-1, 3)[mask]).float().cpu()
+    h, w = cam.height, cam.width
+    white = ~mask.reshape(h, w).numpy()
+    rho = srgb_oetf_numpy(np.clip(values[:, :3].reshape(h, w, 3).numpy(), 0, 1))
+    lat = np.clip((values[:, 3:6].reshape(h, w, 3).numpy() + 1) / 2, 0, 1)
+    lat = np.nan_to_num(lat, nan=0.5)  # PBR variants have no latents: mid grey
+    img = image.numpy()[:, :, :3].copy()
+    for name, pic in (("render", img), ("basecolor", rho), ("latent", lat)):
+        pic = pic.copy()
+        pic[white] = 1.0
+        write_image(folder / f"{name}.png", np.clip(pic, 0, 1).astype(np.float32))

@@ -1,0 +1,48 @@
+"""The TTO variants of the paper's tables, as overrides of a TTOConfig preset (used by the benchmark harness).
+
+Table 1 (PBR vs neural material): "pbr" (NVDiffRecMC++: PBR head, LMRM init, no anchor) vs "ours".
+Table 2 (design choices): (a)-(c) UV textures, (d)-(f) triplane; x LMRM init x uncertainty regulariser.
+Table 3 (TTO regularisation): (a) no TTO (the LMRM's prediction itself: steps = 0), (b) no regulariser,
+(c) predicted uncertainty (ours), (d) oracle uncertainty.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+from neumatex_core.tto.config import TTOConfig
+
+OURS: dict[str, Any] = {"field": "triplane", "init": "lmrm", "reg": "uncertainty", "material": "neural"}
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "ours": OURS,
+    "pbr": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr"},
+    "t2a_uv": {"field": "uv", "init": "random", "reg": "none", "material": "neural"},
+    "t2b_uv_lmrm": {"field": "uv", "init": "lmrm", "reg": "none", "material": "neural"},
+    "t2c_uv_lmrm_unc": {"field": "uv", "init": "lmrm", "reg": "uncertainty", "material": "neural"},
+    "t2d_triplane": {"field": "triplane", "init": "random", "reg": "none", "material": "neural"},
+    "t2e_triplane_lmrm": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "neural"},
+    "t2f_triplane_lmrm_unc": OURS,
+    "t3a_no_tto": {**OURS, "steps": 0},
+    "t3b_no_reg": {**OURS, "reg": "none"},
+    "t3c_unc": OURS,
+    "t3d_oracle": {**OURS, "reg": "oracle"},
+}
+
+TABLES: dict[str, list[str]] = {
+    "table1": ["pbr", "ours"],
+    "table2": ["t2a_uv", "t2b_uv_lmrm", "t2c_uv_lmrm_unc", "t2d_triplane", "t2e_triplane_lmrm",
+               "t2f_triplane_lmrm_unc"],
+    "table3": ["t3a_no_tto", "t3b_no_reg", "t3c_unc", "t3d_oracle"],
+}
+
+
+def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:
+    """The TTOConfig of variant `name` on `base`; None for "no TTO" (evaluate the LMRM prediction itself)."""
+    if name not in VARIANTS:
+        raise ValueError(f"unknown variant {name!r} (expected one of {', '.join(VARIANTS)})")
+    overrides = dict(VARIANTS[name])
+    if overrides.get("steps") == 0:
+        return None
+    return replace(base, **overrides)

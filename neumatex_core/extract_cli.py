@@ -1,0 +1,121 @@
+"""`neumatex extract`: a capture -> a neural material asset through `pipeline.extract`, with a progress bar.
+
+Ctrl-C asks the pipeline to stop (the TTO checkpoints between steps); finished stages stay in the work folder and
+rerunning the same command resumes. A second Ctrl-C interrupts at once (finished stages are still kept).
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+from types import FrameType
+from typing import Any, Literal
+
+import torch
+
+from neumatex_core.config import option
+
+
+@dataclass
+class ExtractCommandConfig:
+    """`neumatex extract`: extract a neural material asset (latent textures + universal basis) from a capture:
+    validate, prepare the 23 preset views, LMRM prediction, test-time optimisation through the path tracer, export
+    (asset package + HTML report in ASSET/report/index.html). Interrupt with Ctrl-C; rerun to resume."""
+
+    capture: str = option("", "capture folder, transforms.json or .zip", positional=True)
+    out: str = option("", "output asset folder (or .zip)")
+    preset: Literal["cpu", "gpu", "tiny"] = option("cpu", "cpu: minutes on 2 cores; gpu: quality; tiny: seconds")
+    work: str = option("", "folder for the stages' outputs (default: .<out name>.work beside --out); keep it to resume")
+    init: Literal["auto", "lmrm", "random"] = option(
+        "auto", "start the TTO from the LMRM's prediction (lmrm: fail without a usable LMRM checkpoint) or a random "
+        "triplane; auto: lmrm when the LMRM checkpoint loads, else random (and says so)")
+    threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
+    steps: int = option(0, "TTO steps (0: the preset's)")
+    device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
+    seed: int = option(0, "random seed")
+    progress: bool = option(True, "show a progress bar")
+
+
+def lmrm_available(device: str = "auto") -> bool:
+    """Whether the shipped LMRM checkpoint loads (present, intact, made for this basis and this code)."""
+    from neumatex_core.lmrm import LMRMError, load_lmrm
+
+    try:
+        load_lmrm("cuda" if device == "auto" and torch.cuda.is_available() else "cpu" if device == "auto" else device)
+    except LMRMError:
+        return False
+    return True
+
+
+def run_extract(cfg: ExtractCommandConfig) -> int:
+    from tqdm import tqdm
+
+    from neumatex_core.pipeline import Cancelled, ExtractConfig, PipelineError, StageProgress, default_work, extract
+
+    if not cfg.capture or not cfg.out:
+        raise ValueError("give the capture and the output: neumatex extract CAPTURE --out ASSET")
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    init = cfg.init
+    if init == "auto":
+        init = "lmrm" if lmrm_available(cfg.device) else "random"
+        if init == "random":
+            print("note: no usable LMRM checkpoint; starting from a random triplane (--init random)", file=sys.stderr)
+    config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed)
+    if cfg.steps:
+        config = replace(config, tto=replace(config.tto, steps=cfg.steps))
+    out = Path(cfg.out)
+    work = Path(cfg.work) if cfg.work else default_work(out)
+    state: dict[str, Any] = {"stop": False, "bar": None, "stage": None}
+
+    def on_sigint(signum: int, frame: FrameType | None) -> None:
+        if state["stop"]:
+            raise KeyboardInterrupt
+        state["stop"] = True
+        print("\nstopping after the current step (Ctrl-C again to interrupt at once) ...", file=sys.stderr)
+
+    def progress(p: StageProgress) -> None:
+        if not cfg.progress:
+            return
+        tto = p.stage == "tto"
+        if state["stage"] != p.stage:
+            if state["bar"] is not None:
+                state["bar"].close()
+            total = config.tto.steps if tto else 100
+            # initial: a resumed TTO starts at its checkpoint's step, so the rate and ETA count only new steps
+            state["bar"] = tqdm(total=total, initial=round(p.fraction * total), desc=p.stage,
+                                unit="step" if tto else "%", file=sys.stderr)  # fmt: skip
+            state["stage"] = p.stage
+        bar = state["bar"]
+        bar.update(round(p.fraction * bar.total) - bar.n)
+        if tto and "step" in p.metrics:
+            bar.set_postfix(loss=f"{p.metrics['loss']:.4g}", psnr=f"{p.metrics['psnr']:.2f}")
+        else:
+            bar.set_postfix_str(p.message[:60])
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        path = extract(Path(cfg.capture), out, config, progress, lambda: bool(state["stop"]), work)
+    except Cancelled as exc:
+        print(f"stopped: {exc}. Finished stages are in {work}; rerun the same command to resume.", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print(f"interrupted. Finished stages are in {work}; rerun the same command to resume.", file=sys.stderr)
+        return 130
+    except PipelineError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if state["bar"] is not None:
+            state["bar"].close()
+    from neumatex_core.pipeline import read_done
+
+    metrics = read_done(work, "export")
+    tto = read_done(work, "tto")
+    print(f"wrote {path} (report: {path / 'report' / 'index.html' if path.is_dir() else 'inside the zip'}); "
+          f"TTO {tto['steps']} steps in {tto['minutes']:.2f} min, photo PSNR "
+          f"{metrics.get('psnr_photos', float('nan')):.2f} dB")
+    return 0

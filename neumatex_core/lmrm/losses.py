@@ -1,0 +1,55 @@
+"""LMRM training losses (DESIGN.md section 5): L = w_mat L_mat + w_unc beta-NLL + w_pbr L_pbr.
+
+- L_mat: mean squared error of the decoded material against the reference, in the metrics' units:
+  0.5 (MSE(rho_d) + MSE((l + 1) / 2)), so each half is what PSNR_BaseColor / PSNR_Latents measure.
+- beta-NLL (Seitzer et al. 2022), per channel, on the raw G-buffer (rho_d, l) that TTO regularises with:
+  stopgrad(sigma^2)^beta * (log sigma^2 + (y - stopgrad(mu))^2 / sigma^2) / 2. The mean is detached, so the
+  uncertainty head never pulls the material prediction; beta = 0.5 keeps the weight of hard points from vanishing.
+- L_pbr: MSE of the PBR head (base colour, roughness, metallic) against the synthetic PBR fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from neumatex_core.lmrm.model import Heads
+
+LOG_VAR_RANGE = (-16.0, 8.0)  # log-variances are clamped to this range inside the NLL (numerical safety)
+
+
+def beta_nll(mean: torch.Tensor, log_var: torch.Tensor, target: torch.Tensor, beta: float = 0.5) -> torch.Tensor:
+    """Per-channel beta-NLL [C] of predictions mean, log_var [N, C] against target [N, C] (mean over N).
+    No gradient reaches `mean` (stop-gradient inside); `log_var` gets the beta-weighted NLL gradient."""
+    lv = log_var.clamp(*LOG_VAR_RANGE)
+    err2 = (target - mean.detach()) ** 2
+    nll = 0.5 * (lv + err2 * torch.exp(-lv))
+    weight = torch.exp(beta * lv).detach()
+    return (weight * nll).mean(0)
+
+
+@dataclass
+class LossWeights:
+    """Stage weights: stage 1 (PBR pre-training) is (0, 0, 1); stage 2 (neural material) (1, lambda_unc, w_pbr)."""
+
+    mat: float
+    unc: float
+    pbr: float
+
+
+def lmrm_loss(heads: Heads, targets: torch.Tensor, w: LossWeights, beta: float = 0.5
+              ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss (scalar) and its parts for heads at N points and targets [N, 14] (rho_d, l, PBR). Parts with
+    weight 0 still enter (times 0), so every parameter gets a (zero) gradient, as DistributedDataParallel wants."""
+    rho, lat, pbr = targets[:, :3], targets[:, 3:9], targets[:, 9:14]
+    mse_rho = ((heads.rho_d - rho) ** 2).mean()
+    mse_lat = (((heads.latent - lat) / 2) ** 2).mean()
+    l_mat = 0.5 * (mse_rho + mse_lat)
+    mean = torch.cat([heads.rho_d, heads.latent], dim=-1)
+    nll = beta_nll(mean, heads.log_var, targets[:, :9], beta).mean()
+    l_pbr = ((heads.pbr - pbr) ** 2).mean()
+    total = w.mat * l_mat + w.unc * nll + w.pbr * l_pbr
+    parts = {k: float(v.detach()) for k, v in
+             (("l_mat", l_mat), ("mse_rho", mse_rho), ("mse_lat", mse_lat), ("nll", nll), ("l_pbr", l_pbr))}
+    return total, parts

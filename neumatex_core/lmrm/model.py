@@ -1,0 +1,253 @@
+"""The LMRM network (DESIGN.md section 5): preset views + known geometry -> feature triplane -> decoders.
+
+Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
+
+1. `view_inputs` builds per-pixel input channels [V, IN_CHANNELS, H, W]: the tonemapped view (sRGB), the
+   coverage mask, the G-buffer normal and the unit direction to the camera (world space), the pre-filtered
+   lighting cues (diffuse at the normal, three glossy widths at the mirror direction, squashed c / (1 + c)), the
+   ratio of the linear pixel to the diffuse cue (a shading-normalised colour, /3) and a "lighting known" flag.
+   Uncovered pixels are zero.
+2. A small per-view CNN (`ViewEncoder`, 3x3 convolutions) maps them to per-pixel features [V, F, H, W].
+3. Lifting: covered pixels carry their surface point (position G-buffer); each plane k of the triplane (XY, YZ,
+   XZ) gets the scatter-mean of the features of the points falling into each of its R x R texels, their mean
+   square (view-dependent effects, e.g. highlights, raise it) and log(1 + count) (`lift_to_planes`).
+4. A shared U-Net (`PlaneNet`, with a one-hot plane-id input and the mean feature of all the object's points as
+   global context at every texel) turns the three lifted planes into the triplane [3, C, R, R].
+5. Decoders from `neumatex_core.fields`: `MaterialDecoder` (rho_d, latent), `UncertaintyDecoder` (9 log-variances),
+   `PBRDecoder` (base colour, roughness, metallic), all reading `Triplane.features(points)` [N, 3C].
+
+`LMRMConfig` sizes everything; `LMRMConfig.preset("gpu")` is the larger configuration of the same code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.func import functional_call
+
+from neumatex_core.capture.tonemap import srgb_eotf
+from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder, UncertaintyDecoder
+from neumatex_core.fields.triplane import PLANE_AXES, Triplane
+from neumatex_core.lighting.prefilter import KAPPAS
+
+N_CUES = 3 * (1 + len(KAPPAS))  # diffuse RGB + glossy RGB per lobe width
+IN_CHANNELS = 3 + 1 + 3 + 3 + N_CUES + 3 + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
+RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
+
+
+@dataclass
+class LMRMConfig:
+    """Sizes of the LMRM (defaults: the CPU model, trained in about 40 minutes on one core)."""
+
+    view_resolution: int = 64  # views are resampled to this size (pixels, square) before encoding
+    view_channels: int = 24  # hidden width of the per-view CNN
+    view_layers: int = 2  # 3x3 convolutions in the per-view CNN
+    feature_channels: int = 16  # per-pixel features lifted into the planes (F)
+    plane_resolution: int = 48  # R
+    plane_channels: int = 32  # width of the plane U-Net (doubled at its lower levels)
+    triplane_channels: int = 16  # C
+    decoder_hidden: int = 64
+    decoder_layers: int = 2
+
+    @classmethod
+    def preset(cls, name: str) -> LMRMConfig:
+        """'cpu' (the defaults), 'gpu' (about 30x the compute: larger views, planes and widths) or 'test' (a few
+        thousand parameters, for unit tests)."""
+        if name == "cpu":
+            return cls()
+        if name == "test":
+            return cls(view_resolution=24, view_channels=8, view_layers=1, feature_channels=4, plane_resolution=8,
+                       plane_channels=8, triplane_channels=4, decoder_hidden=16, decoder_layers=1)  # fmt: skip
+        if name == "gpu":
+            return cls(view_resolution=128, view_channels=64, view_layers=3, feature_channels=32,
+                       plane_resolution=96, plane_channels=64, triplane_channels=32, decoder_hidden=128)  # fmt: skip
+        raise ValueError(f"unknown LMRM preset {name!r} (expected 'cpu', 'gpu' or 'test')")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LMRMConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown LMRM config keys {unknown}")
+        return cls(**data)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def view_inputs(
+    rgb: torch.Tensor, mask: torch.Tensor, normal: torch.Tensor, to_camera: torch.Tensor,
+    cues: torch.Tensor | None,
+) -> torch.Tensor:
+    """Per-pixel network inputs [V, IN_CHANNELS, H, W].
+
+    rgb [V, H, W, 3] tonemapped sRGB in [0, 1]; mask [V, H, W] bool coverage; normal, to_camera [V, H, W, 3] unit
+    world vectors (surface normal, direction from the surface point to the camera); cues [V, H, W, N_CUES] linear
+    radiance of the pre-filtered lighting (diffuse(normal), glossy(reflection) per KAPPAS), or None when the
+    lighting is unknown (cue channels and the flag are zero).
+    """
+    m = mask.unsqueeze(-1).to(rgb.dtype)
+    if cues is None:
+        cue_feat = torch.zeros(*rgb.shape[:3], N_CUES, dtype=rgb.dtype, device=rgb.device)
+        ratio = torch.zeros_like(rgb)
+        flag = torch.zeros_like(m)
+    else:
+        cues = cues.clamp_min(0)
+        cue_feat = cues / (1 + cues)
+        ratio = (srgb_eotf(rgb) / cues[..., :3].clamp_min(1e-3)).clamp(0, RATIO_MAX) / RATIO_MAX
+        flag = m
+    x = torch.cat([rgb, m, normal, to_camera, cue_feat, ratio, flag], dim=-1) * m
+    return x.permute(0, 3, 1, 2).contiguous()
+
+
+def _conv(c_in: int, c_out: int) -> nn.Sequential:
+    """3x3 convolution + SiLU. No normalisation layer: per-sample normalisation (GroupNorm) would remove the
+    absolute colour level of a view or plane, which is exactly what the base colour needs (measured: with it the
+    first CPU run stayed at the mean-material baseline)."""
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, padding=1), nn.SiLU())
+
+
+class ViewEncoder(nn.Module):
+    """Per-view CNN: [V, IN_CHANNELS, H, W] -> per-pixel features [V, F, H, W] (full resolution)."""
+
+    def __init__(self, cfg: LMRMConfig) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        c = IN_CHANNELS
+        for _ in range(cfg.view_layers):
+            layers.append(_conv(c, cfg.view_channels))
+            c = cfg.view_channels
+        self.body = nn.Sequential(*layers)
+        self.head = nn.Conv2d(c + IN_CHANNELS, cfg.feature_channels, 1)  # skip: raw inputs reach the planes
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(torch.cat([self.body(x), x], dim=1))
+
+
+def texel_index(points: torch.Tensor, resolution: int) -> torch.Tensor:
+    """[3, N] flat texel index (row * R + column) of points [N, 3] in each plane (grid_sample's layout: the
+    plane's first coordinate picks the column, the second the row; texel i covers [-1 + 2i/R, -1 + 2(i+1)/R])."""
+    out = []
+    for a, b in PLANE_AXES:
+        col = ((points[:, a] + 1) * 0.5 * resolution).floor().long().clamp(0, resolution - 1)
+        row = ((points[:, b] + 1) * 0.5 * resolution).floor().long().clamp(0, resolution - 1)
+        out.append(row * resolution + col)
+    return torch.stack(out)
+
+
+def lift_to_planes(features: torch.Tensor, points: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Scatter point features [N, F] at world points [N, 3] into three planes: [3, 2F + 1, R, R] holding the
+    per-texel mean, mean square and log(1 + count)/5 of the features of the points inside each texel."""
+    n_feat = features.shape[1]
+    idx = texel_index(points, resolution)  # [3, N]
+    planes = []
+    both = torch.cat([features, features * features, torch.ones_like(features[:, :1])], dim=1)
+    for k in range(3):
+        acc = torch.zeros(resolution * resolution, 2 * n_feat + 1, dtype=features.dtype, device=features.device)
+        acc = acc.index_add(0, idx[k], both)
+        count = acc[:, -1:]
+        mean = acc[:, :-1] / count.clamp_min(1)
+        planes.append(torch.cat([mean, torch.log1p(count) / 5], dim=1))
+    return torch.stack(planes).reshape(3, resolution, resolution, 2 * n_feat + 1).permute(0, 3, 1, 2)
+
+
+class PlaneNet(nn.Module):
+    """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3, R, R] (lifted mean, mean square, count, the
+    object's global feature mean, plane id) -> [B*3, C, R, R] (two levels down)."""
+
+    def __init__(self, cfg: LMRMConfig) -> None:
+        super().__init__()
+        c_in = 3 * cfg.feature_channels + 1 + 3
+        c1, c2 = cfg.plane_channels, 2 * cfg.plane_channels
+        self.enc1 = nn.Sequential(_conv(c_in, c1), _conv(c1, c1))
+        self.enc2 = nn.Sequential(_conv(c1, c2), _conv(c2, c2))
+        self.mid = nn.Sequential(_conv(c2, c2), _conv(c2, c2))
+        self.dec2 = _conv(2 * c2, c1)
+        self.dec1 = nn.Sequential(_conv(2 * c1, c1), _conv(c1, c1))
+        self.out = nn.Conv2d(c1, cfg.triplane_channels, 1)
+        self.skip = nn.Conv2d(c_in, cfg.triplane_channels, 1)  # linear path: lifted means straight to the triplane
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        e1 = self.enc1(x)
+        e2 = self.enc2(F.avg_pool2d(e1, 2))
+        m = self.mid(F.avg_pool2d(e2, 2))
+        d2 = self.dec2(torch.cat([F.interpolate(m, size=e2.shape[-2:], mode="bilinear", align_corners=False), e2], 1))
+        d1 = self.dec1(torch.cat([F.interpolate(d2, size=e1.shape[-2:], mode="bilinear", align_corners=False), e1], 1))
+        return self.out(d1) + self.skip(x)
+
+
+@dataclass
+class ObjectInputs:
+    """What the network reads for one object: inputs [V, IN_CHANNELS, H, W] (`view_inputs`), mask [V, H, W] bool
+    and position [V, H, W, 3] world surface points (zero where uncovered)."""
+
+    inputs: torch.Tensor
+    mask: torch.Tensor
+    position: torch.Tensor
+
+
+@dataclass
+class Heads:
+    """Decoded G-buffers at N query points: rho_d [N, 3], latent [N, 6], log_var [N, 9], pbr [N, 5]
+    (base colour, roughness, metallic)."""
+
+    rho_d: torch.Tensor
+    latent: torch.Tensor
+    log_var: torch.Tensor
+    pbr: torch.Tensor
+
+
+class LMRMNet(nn.Module):
+    """The trainable LMRM: `planes(objects)` -> [B, 3, C, R, R]; `forward(objects, points)` also decodes the
+    heads at per-object query points [N_b, 3] (one call, so DistributedDataParallel sees every parameter)."""
+
+    _template: Triplane
+
+    def __init__(self, cfg: LMRMConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.view_encoder = ViewEncoder(cfg)
+        self.plane_net = PlaneNet(cfg)
+        n_features = 3 * cfg.triplane_channels
+        self.material_decoder = MaterialDecoder(n_features, cfg.decoder_hidden, cfg.decoder_layers)
+        self.uncertainty_decoder = UncertaintyDecoder(n_features, cfg.decoder_hidden, cfg.decoder_layers)
+        self.pbr_decoder = PBRDecoder(n_features, cfg.decoder_hidden, cfg.decoder_layers)
+        # Shape holder for functional_call; kept out of the module tree (not a parameter, not in the state dict).
+        object.__setattr__(self, "_template", Triplane(cfg.triplane_channels, cfg.plane_resolution, init_std=0.0))
+
+    def planes(self, objects: list[ObjectInputs]) -> torch.Tensor:
+        """Triplane planes [B, 3, C, R, R] of B objects."""
+        r = self.cfg.plane_resolution
+        lifted = []
+        for obj in objects:
+            feats = self.view_encoder(obj.inputs)  # [V, F, H, W]
+            m = obj.mask
+            pts = obj.position[m]  # [P, 3]
+            per_pixel = feats.permute(0, 2, 3, 1)[m]  # [P, F]
+            planes = lift_to_planes(per_pixel, pts, r)
+            context = per_pixel.mean(0)[None, :, None, None].expand(3, -1, r, r)  # object-level colour, gloss
+            lifted.append(torch.cat([planes, context], dim=1))
+        x = torch.stack(lifted)  # [B, 3, 3F+1, R, R]
+        b = x.shape[0]
+        plane_id = torch.eye(3, dtype=x.dtype, device=x.device)[None, :, :, None, None].expand(b, 3, 3, r, r)
+        x = torch.cat([x, plane_id], dim=2).reshape(b * 3, -1, r, r)
+        return self.plane_net(x).reshape(b, 3, self.cfg.triplane_channels, r, r)
+
+    def features(self, planes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """`Triplane.features` of planes [3, C, R, R] at points [N, 3] -> [N, 3C], differentiable in planes."""
+        out: torch.Tensor = functional_call(self._template, {"planes": planes}, (points,))
+        return out
+
+    def decode(self, features: torch.Tensor) -> Heads:
+        rho_d, latent = self.material_decoder(features)
+        base, rough, metal = self.pbr_decoder(features)
+        pbr = torch.cat([base, rough.unsqueeze(-1), metal.unsqueeze(-1)], dim=-1)
+        return Heads(rho_d, latent, self.uncertainty_decoder(features), pbr)
+
+    def forward(self, objects: list[ObjectInputs], points: list[torch.Tensor]) -> tuple[torch.Tensor, list[Heads]]:
+        planes = self.planes(objects)
+        return planes, [self.decode(self.features(planes[i], p)) for i, p in enumerate(points)]

@@ -1,0 +1,353 @@
+"""LMRM training (`neumatex train-lmrm`, DESIGN.md section 5).
+
+- Two-stage curriculum: steps < `pbr_steps` train on PBR targets through the PBR head only; later steps train
+  L_mat + lambda_unc beta-NLL (+ `lambda_pbr` L_pbr, so the PBR head stays usable) (losses.py).
+- Adam with linear warm-up and cosine decay, gradient clipping; an exponential moving average (EMA) of the
+  weights is what validation reads and what ships (small batches of whole objects make the raw weights jumpy).
+- Data: the finished objects of the `data` folders, cached on first use (data.py); the object list is re-read at
+  every epoch, so training can start while `neumatex synth` is still adding objects. Objects whose index is
+  `val_modulo - 1` modulo `val_modulo` are held out for validation.
+- Every step's randomness derives from (seed, step, rank), and a checkpoint holds the model, the optimiser, the
+  epoch's object order and the history, so a resumed run continues exactly like an uninterrupted one.
+- Checkpoint `out/checkpoint.pt` every `checkpoint_every` steps and at the end (or at `max_minutes`);
+  `out/curves.json` and `out/curves.png`; the final weights `out/lmrm.safetensors` + `out/lmrm.json`, copied
+  into the package with `--install`.
+- Multi-GPU / multi-process: run under torchrun; each rank takes its share of every global batch and
+  DistributedDataParallel averages the gradients (gloo on CPU, NCCL on CUDA). Only rank 0 writes files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+
+from neumatex_core.config import option
+from neumatex_core.eval.metrics import psnr
+from neumatex_core.lmrm.data import Augment, LMRMDataset, Sample, make_sample, training_mean
+from neumatex_core.lmrm.inference import DATA_DIR, save_lmrm
+from neumatex_core.lmrm.losses import LossWeights, lmrm_loss
+from neumatex_core.lmrm.model import LMRMConfig, LMRMNet
+from neumatex_core.lmrm.plots import line_chart
+from neumatex_core.materials.neural_basis import load_basis
+
+
+@dataclass
+class TrainLMRMConfig:
+    """`neumatex train-lmrm`: train (or resume) the LMRM on synthetic objects (`neumatex synth` folders); writes
+    checkpoints, loss curves and the final weights; --install ships them in the package."""
+
+    data: str = option("data/synth-train", "comma-separated synth output folders")
+    cache: str = option("data/lmrm-cache", "folder for the per-object tensor cache")
+    out: str = option("runs/lmrm/train", "output folder: checkpoint, curves, final weights")
+    preset: Literal["cpu", "gpu", "test"] = option("cpu", "model size (LMRMConfig.preset)")
+    steps: int = option(560, "optimisation steps in total")
+    pbr_steps: int = option(100, "steps of stage 1 (PBR targets through the PBR head) before the neural stage")
+    batch_size: int = option(4, "objects per step and process")
+    points: int = option(2048, "supervised surface points per object and step")
+    lr: float = option(1e-3, "peak learning rate (Adam)")
+    warmup: int = option(30, "linear warm-up steps")
+    ema: float = option(0.98, "decay of the exponential moving average of the weights (evaluated and shipped)")
+    lambda_unc: float = option(0.1, "weight of the beta-NLL uncertainty loss")
+    lambda_pbr: float = option(0.1, "weight of the PBR loss in the neural stage")
+    beta: float = option(0.5, "beta of the beta-NLL")
+    clip: float = option(1.0, "gradient norm clipping")
+    seed: int = option(0, "seed of initialisation, data order and augmentation")
+    augment: bool = option(True, "random rotation about +Y, exposure, view dropout, hidden lighting")
+    val_modulo: int = option(50, "hold out objects whose index is val_modulo-1 mod val_modulo (0: none)")
+    val_objects: int = option(8, "validation objects evaluated (at most)")
+    val_every: int = option(50, "validate every this many steps")
+    checkpoint_every: int = option(25, "write the checkpoint every this many steps")
+    max_minutes: float = option(0.0, "stop (with a checkpoint) after this many minutes; 0: no limit")
+    threads: int = option(1, "torch intra-op threads (CPU)")
+    device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
+    resume: bool = option(True, "continue from out/checkpoint.pt when it exists")
+    install: bool = option(False, "copy the final weights into neumatex_core/lmrm/data/ (the shipped model)")
+
+
+@dataclass
+class TrainResult:
+    steps_done: int
+    finished: bool
+    metrics: dict[str, Any]
+    out: Path
+
+
+def _is_val(name: str, modulo: int) -> bool:
+    if modulo <= 0:
+        return False
+    try:
+        return int(name.rsplit("-", 1)[-1]) % modulo == modulo - 1
+    except ValueError:
+        return False
+
+
+def _dist() -> tuple[int, int, bool]:
+    """(rank, world size, whether we initialised the process group): torchrun sets WORLD_SIZE and RANK."""
+    if "WORLD_SIZE" in os.environ and int(os.environ["WORLD_SIZE"]) >= 1 and "RANK" in os.environ:
+        owned = not dist.is_initialized()
+        if owned:
+            dist.init_process_group(backend="nccl" if torch.cuda.is_available() else "gloo")
+        return dist.get_rank(), dist.get_world_size(), owned
+    return 0, 1, False
+
+
+def _lr(cfg: TrainLMRMConfig, step: int) -> float:
+    if step < cfg.warmup:
+        return cfg.lr * (step + 1) / cfg.warmup
+    t = (step - cfg.warmup) / max(cfg.steps - cfg.warmup, 1)
+    return cfg.lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
+
+
+def _weights(cfg: TrainLMRMConfig, step: int) -> LossWeights:
+    if step < cfg.pbr_steps:
+        return LossWeights(mat=0.0, unc=0.0, pbr=1.0)
+    return LossWeights(mat=1.0, unc=cfg.lambda_unc, pbr=cfg.lambda_pbr)
+
+
+def _generator(seed: int, *keys: int) -> torch.Generator:
+    value = seed
+    for k in keys:
+        value = (value * 1_000_003 + k) % (2**62)
+    return torch.Generator().manual_seed(value)
+
+
+class _Order:
+    """The object order of the current epoch (ids), re-read from the data folders at each new epoch."""
+
+    def __init__(self, cfg: TrainLMRMConfig, roots: list[Path], cache: Path) -> None:
+        self.cfg, self.roots, self.cache = cfg, roots, cache
+        self.epoch, self.pos = -1, 0
+        self.ids: list[str] = []
+        self.dataset = self._scan()
+
+    def _scan(self) -> LMRMDataset:
+        ds = LMRMDataset(self.roots, self.cache)
+        ds.folders = [f for f in ds.folders if not _is_val(f.name, self.cfg.val_modulo)]
+        if not ds.folders:
+            raise ValueError(f"{', '.join(map(str, self.roots))}: no finished training objects "
+                             "(make them with `neumatex synth`)")  # fmt: skip
+        return ds
+
+    def state(self) -> dict[str, Any]:
+        return {"epoch": self.epoch, "ids": self.ids, "pos": self.pos}
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        self.epoch, self.ids, self.pos = int(state["epoch"]), list(state["ids"]), int(state["pos"])
+        self.dataset = self._scan()
+        missing = sorted(set(self.ids) - set(self.dataset.ids))
+        if missing:
+            raise ValueError(f"checkpoint's epoch uses objects no longer in the data folders: {missing[:5]}")
+
+    def take(self, n: int) -> list[int]:
+        """Indices into self.dataset of the next n objects."""
+        if self.pos + n > len(self.ids):
+            self.dataset = self._scan()
+            self.epoch += 1
+            perm = torch.randperm(len(self.dataset), generator=_generator(self.cfg.seed, 7, self.epoch))
+            self.ids = [self.dataset.ids[int(i)] for i in perm]
+            self.pos = 0
+            if n > len(self.ids):
+                raise ValueError(f"batch of {n} objects but only {len(self.ids)} training objects")
+        index = {name: i for i, name in enumerate(self.dataset.ids)}
+        picked = [index[name] for name in self.ids[self.pos:self.pos + n]]
+        self.pos += n
+        return picked
+
+
+def _to(sample: Sample, device: torch.device) -> Sample:
+    s = sample
+    s.inputs.inputs, s.inputs.mask = s.inputs.inputs.to(device), s.inputs.mask.to(device)
+    s.inputs.position = s.inputs.position.to(device)
+    s.points, s.targets = s.points.to(device), s.targets.to(device)
+    return s
+
+
+@torch.no_grad()
+def evaluate(net: LMRMNet, dataset: LMRMDataset, device: torch.device, mean: torch.Tensor | None = None
+             ) -> dict[str, float]:
+    """Mean PSNR_BaseColor / PSNR_Latents ((l+1)/2) over the covered pixels of each object's cached views, and the
+    same for the constant `mean` material [14] when given."""
+    was_training = net.training
+    net.eval()
+    rows: dict[str, list[float]] = {"psnr_basecolor": [], "psnr_latents": [], "mean_psnr_basecolor": [],
+                                    "mean_psnr_latents": []}  # fmt: skip
+    for i in range(len(dataset)):
+        s = _to(make_sample(dataset.load(i), torch.Generator().manual_seed(0), Augment.none(), 0), device)
+        _, (heads,) = net([s.inputs], [s.points])
+        t = s.targets
+        rows["psnr_basecolor"].append(psnr(heads.rho_d[None], t[None, :, :3]))
+        rows["psnr_latents"].append(psnr((heads.latent[None] + 1) / 2, (t[None, :, 3:9] + 1) / 2))
+        if mean is not None:
+            m = mean.to(device).expand_as(t)
+            rows["mean_psnr_basecolor"].append(psnr(m[None, :, :3], t[None, :, :3]))
+            rows["mean_psnr_latents"].append(psnr((m[None, :, 3:9] + 1) / 2, (t[None, :, 3:9] + 1) / 2))
+    net.train(was_training)
+    return {k: float(sum(v) / len(v)) for k, v in rows.items() if v}
+
+
+def write_curves(history: list[dict[str, Any]], validation: list[dict[str, Any]], out: Path) -> None:
+    """curves.json (every logged step and validation) and curves.png (losses; validation PSNR)."""
+    (out / "curves.json").write_text(json.dumps({"train": history, "validation": validation}) + "\n")
+    if not history:
+        return
+
+    def smooth(key: str, stage: int) -> tuple[list[float], list[float]]:
+        rows = [h for h in history if h["stage"] == stage]
+        xs, ys, k = [], [], 25
+        for j in range(0, len(rows), k):
+            chunk = rows[j:j + k]
+            xs.append(float(chunk[-1]["step"]))
+            ys.append(sum(float(c[key]) for c in chunk) / len(chunk))
+        return xs, ys
+
+    panels: list[tuple[str, dict[str, tuple[Any, Any]], bool]] = [
+        ("training losses (mean of 25 steps)", {"stage 1 L_pbr": smooth("l_pbr", 1), "L_pbr": smooth("l_pbr", 2),
+                                                 "MSE rho_d": smooth("mse_rho", 2),
+                                                 "MSE (l+1)/2": smooth("mse_lat", 2)}, True),
+        ("beta-NLL (stage 2)", {"beta-NLL": smooth("nll", 2)}, False),
+    ]  # fmt: skip
+    if validation:
+        xs = [float(v["step"]) for v in validation]
+        series: dict[str, tuple[Any, Any]] = {k: (xs, [float(v[k]) for v in validation]) for k in
+                  ("psnr_basecolor", "psnr_latents", "mean_psnr_basecolor", "mean_psnr_latents") if k in validation[0]}
+        panels.append(("validation PSNR (dB): LMRM vs mean material", series, False))
+    line_chart(panels, out / "curves.png")
+
+
+def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, float]], None] | None = None
+               ) -> TrainResult:
+    """Train (or resume) the LMRM as configured; see the module docstring."""
+    rank, world, owned = _dist()
+    if cfg.device == "auto":
+        device = torch.device(f"cuda:{rank % torch.cuda.device_count()}" if torch.cuda.is_available() else "cpu")
+    else:
+        device = torch.device(cfg.device)
+    if device.type == "cpu":
+        torch.set_num_threads(cfg.threads)
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    roots = [Path(p) for p in cfg.data.split(",") if p.strip()]
+    cache = Path(cfg.cache)
+    model_cfg = LMRMConfig.preset(cfg.preset)
+    torch.manual_seed(cfg.seed)
+    net = LMRMNet(model_cfg).to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    ema = LMRMNet(model_cfg).to(device)
+    ema.load_state_dict(net.state_dict())
+    ema.requires_grad_(False)
+    order = _Order(cfg, roots, cache)
+    history: list[dict[str, Any]] = []
+    validation: list[dict[str, Any]] = []
+    step = 0
+    ckpt = out / "checkpoint.pt"
+    if cfg.resume and ckpt.is_file():
+        state = torch.load(ckpt, map_location=device, weights_only=False)
+        if state["model_config"] != model_cfg.to_dict():
+            raise ValueError(f"{ckpt}: made with another model config ({state['model_config']}); use a new --out")
+        net.load_state_dict(state["model"])
+        ema.load_state_dict(state["ema"])
+        opt.load_state_dict(state["optimizer"])
+        order.load_state(state["order"])
+        history, validation, step = state["history"], state["validation"], int(state["step"])
+    model: torch.nn.Module = net
+    if world > 1 or dist.is_initialized():
+        model = DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
+    def validation_set() -> LMRMDataset:  # re-read each time: objects may still be arriving
+        ds = LMRMDataset(roots, cache)
+        ds.folders = [f for f in ds.folders if _is_val(f.name, cfg.val_modulo)][:cfg.val_objects]
+        return ds
+
+    val_set = validation_set()
+    val_mean = training_mean(order.dataset) if (val_set.folders and rank == 0) else None
+    augment = Augment() if cfg.augment else Augment.none()
+    started = time.monotonic()
+
+    def save_checkpoint() -> None:
+        if rank != 0:
+            return
+        state = {"model": net.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
+                 "order": order.state(), "step": step,
+                 "history": history, "validation": validation, "model_config": model_cfg.to_dict(),
+                 "train_config": asdict(cfg)}  # fmt: skip
+        tmp = ckpt.with_suffix(".tmp")
+        torch.save(state, tmp)
+        tmp.replace(ckpt)
+        write_curves(history, validation, out)
+
+    net.train()
+    stopped_early = False
+    while step < cfg.steps:
+        global_batch = order.take(cfg.batch_size * world)
+        mine = global_batch[rank * cfg.batch_size:(rank + 1) * cfg.batch_size]
+        samples = [_to(order.dataset.sample(i, _generator(cfg.seed, step, rank, k), augment, cfg.points), device)
+                   for k, i in enumerate(mine)]  # fmt: skip
+        for g in opt.param_groups:
+            g["lr"] = _lr(cfg, step)
+        w = _weights(cfg, step)
+        _, heads = model([s.inputs for s in samples], [s.points for s in samples])
+        total = torch.zeros((), device=device)
+        parts: dict[str, float] = {}
+        for h, s in zip(heads, samples, strict=True):
+            loss, p = lmrm_loss(h, s.targets, w, cfg.beta)
+            total = total + loss / len(samples)
+            for k, v in p.items():
+                parts[k] = parts.get(k, 0.0) + v / len(samples)
+        opt.zero_grad(set_to_none=False)
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.clip)
+        opt.step()
+        with torch.no_grad():
+            for slow, fast in zip(ema.parameters(), net.parameters(), strict=True):
+                slow.lerp_(fast, 1 - cfg.ema)
+        step += 1
+        row = {"step": step, "stage": 1 if w.mat == 0 else 2, "loss": float(total.detach()), "lr": _lr(cfg, step - 1),
+               **parts}  # fmt: skip
+        history.append(row)
+        if progress is not None and rank == 0:
+            progress(step, cfg.steps, row)
+        if rank == 0 and (step % cfg.val_every == 0 or step == cfg.steps) and (val_set := validation_set()).folders:
+            val_mean = training_mean(order.dataset) if val_mean is None else val_mean
+            validation.append({"step": step, **evaluate(ema, val_set, device, val_mean)})
+        if step % cfg.checkpoint_every == 0:
+            save_checkpoint()
+        if cfg.max_minutes > 0 and (time.monotonic() - started) / 60 > cfg.max_minutes and step < cfg.steps:
+            stopped_early = True
+            break
+    save_checkpoint()
+    metrics: dict[str, Any] = {}
+    if rank == 0 and not stopped_early:
+        if val_set.folders and (not validation or validation[-1]["step"] != step):
+            validation.append({"step": step, **evaluate(ema, val_set, device, val_mean)})
+            save_checkpoint()
+        tail = history[-50:]
+        metrics = {
+            "steps": step, "train_objects": len(order.dataset), "validation_objects": len(val_set),
+            "train_l_mat_last50": sum(h["l_mat"] for h in tail) / len(tail),
+            "train_nll_last50": sum(h["nll"] for h in tail) / len(tail),
+            "validation": validation[-1] if validation else {},
+            "training_mean": [round(float(x), 6) for x in training_mean(order.dataset)],
+        }  # fmt: skip
+        info = {"metrics": metrics, "train_config": asdict(cfg),
+                "data": {"folders": [str(r) for r in roots], "objects": len(order.dataset),
+                         "manifest_sha256": order.dataset.manifest_hash(), "validation_ids": val_set.ids},
+                "training": {"world_size": world, "device": str(device),
+                             "minutes_this_run": round((time.monotonic() - started) / 60, 2)}}  # fmt: skip
+        basis = load_basis()
+        save_lmrm(ema, out / "lmrm.safetensors", out / "lmrm.json", basis, info)
+        if cfg.install:
+            for name in ("lmrm.safetensors", "lmrm.json"):
+                shutil.copy2(out / name, DATA_DIR / name)
+    if owned:
+        dist.destroy_process_group()
+    return TrainResult(step, not stopped_early, metrics, out)

@@ -1,0 +1,662 @@
+"""Extraction: capture -> neural material asset, in five resumable stages. The one entry used by the CLI
+(`neumatex extract`) and by the service workers (one task per stage).
+
+    STAGES = ("validate", "prepare_views", "lmrm", "tto", "export")
+    metrics = run_stage("tto", capture, work, ExtractConfig.preset("cpu"), progress, should_stop)
+    asset = extract(capture, out, ExtractConfig.preset("cpu"), progress, should_stop, work)
+
+Each stage reads the capture and the previous stages' stored outputs under `work/`, writes its own under
+`work/<stage>/` and `done.json` last (atomic rename), so it is idempotent (a finished stage returns its stored
+metrics) and a killed stage re-runs cleanly (the TTO resumes from its last checkpoint). Stage outputs:
+
+- validate/       done.json (frames, faces, envmap size)
+- prepare_views/  views.safetensors (display [23, R, R, 3], mask, observed), views.json (normalisation, source),
+                  views.png
+- lmrm/           prediction.safetensors (triplane planes, decoder weights), prediction.json (source, decoder
+                  architectures and ids, whether it is a trained LMRM's)
+- tto/            checkpoint.pt (while running), result.safetensors (the optimised tensor), history.json
+- export/         asset/ (the package; report/index.html inside)
+
+Errors: bad input raises PipelineError with the file and the problem in plain words; should_stop() returning
+true raises Cancelled (checked between stages and between TTO steps; the TTO checkpoints first).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from neumatex_core.capture import Capture, CaptureError, load_capture, validate_capture
+from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.fields.decoders import DECODERS, MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id
+from neumatex_core.fields.triplane import Triplane
+from neumatex_core.geometry.camera import Camera, preset_views
+from neumatex_core.geometry.gbuffer import render_gbuffer
+from neumatex_core.geometry.mesh import Mesh
+from neumatex_core.lighting.envmap import EnvironmentMap
+from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
+from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.tto.config import TTOConfig
+from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.optimise import build_problem, optimise
+
+STAGES = ("validate", "prepare_views", "lmrm", "tto", "export")
+DONE = "done.json"
+ASSET_DIR = "asset"
+PRESET_TOLERANCE = 1e-3  # max |c2w difference| for a frame to count as a preset view
+RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when no LMRM is available
+
+
+class PipelineError(Exception):
+    """Bad input or an unusable stage output; the message names the file and the problem in plain words."""
+
+
+class Cancelled(Exception):
+    """should_stop() returned true; finished stages (and the TTO checkpoint) are kept for a later resume."""
+
+
+@dataclass
+class StageProgress:
+    """stage: one of STAGES; fraction: of this stage done, in [0, 1]; message: one line for people; metrics: the
+    stage's numbers so far (TTO: step, loss, photo, reg, psnr, lr)."""
+
+    stage: str
+    fraction: float
+    message: str
+    metrics: dict[str, float] = field(default_factory=dict)
+
+
+Progress = Callable[[StageProgress], None]
+ShouldStop = Callable[[], bool]
+
+
+@dataclass
+class ExtractConfig:
+    """preset_name: the preset this config came from; tto: the TTO schedule and variant; init: "lmrm" (needs the
+    shipped LMRM checkpoint, or `lmrm_weights`) or "random"; view_resolution: size of the preset views made by
+    prepare_views (pixels); blend_k: photos blended per pixel when views are synthesised; texture_resolution: baked
+    asset textures; preview_resolution / preview_spp: preview renders; eval_photos / eval_spp: photos re-rendered at
+    export for the photo PSNR (0: none); lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the
+    shipped one; device: "auto", "cpu" or "cuda"; seed: every random draw; name: asset name (default: the capture
+    folder's)."""
+
+    preset_name: str = "cpu"
+    tto: TTOConfig = field(default_factory=TTOConfig)
+    init: Literal["lmrm", "random"] = "lmrm"
+    view_resolution: int = 64
+    blend_k: int = 3
+    texture_resolution: int = 128
+    preview_resolution: int = 128
+    preview_spp: int = 32
+    eval_photos: int = 4
+    eval_spp: int = 16
+    lmrm_weights: str = ""
+    device: str = "auto"
+    seed: int = 0
+    name: str = ""
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> ExtractConfig:
+        """'tiny' (tests: seconds), 'cpu' (default: minutes on 2 cores) or 'gpu' (quality), with field overrides."""
+        if name == "tiny":
+            base = cls(preset_name=name, tto=TTOConfig.preset("tiny"), view_resolution=32, texture_resolution=64,
+                       preview_resolution=32, preview_spp=2, eval_photos=1, eval_spp=2)  # fmt: skip
+        elif name == "cpu":
+            base = cls(preset_name=name, tto=TTOConfig.preset("cpu"), texture_resolution=128, preview_resolution=96,
+                       preview_spp=8, eval_spp=8)  # fmt: skip
+        elif name == "gpu":
+            base = cls(preset_name=name, tto=TTOConfig.preset("gpu"), view_resolution=128, texture_resolution=1024,
+                       preview_resolution=512, preview_spp=256, eval_photos=23, eval_spp=128)  # fmt: skip
+        else:
+            raise ValueError(f"unknown extract preset {name!r} (expected tiny, cpu or gpu)")
+        return replace(base, **overrides)
+
+    def tto_config(self) -> TTOConfig:
+        """The TTO config with this config's init switch and seed."""
+        return replace(self.tto, init=self.init, seed=self.seed)
+
+    def torch_device(self) -> torch.device:
+        if self.device == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        return torch.device(self.device)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able (the TTO config nested), e.g. for a job record or a task message; `from_dict` inverts it."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ExtractConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown extract config keys {unknown}")
+        values = dict(data)
+        if isinstance(values.get("tto"), dict):
+            values["tto"] = TTOConfig.from_dict(values["tto"])
+        return cls(**values)
+
+
+# -- stage bookkeeping ------------------------------------------------------------------------------------------
+def stage_dir(work: Path, stage: str) -> Path:
+    return Path(work) / stage
+
+
+def asset_path(work: Path) -> Path:
+    """Where the export stage writes the asset package (a folder)."""
+    return stage_dir(work, "export") / ASSET_DIR
+
+
+def is_done(work: Path, stage: str) -> bool:
+    return (stage_dir(work, stage) / DONE).is_file()
+
+
+def read_done(work: Path, stage: str) -> dict[str, Any]:
+    """The stored metrics of a finished stage (PipelineError if it is not finished or unreadable)."""
+    path = stage_dir(work, stage) / DONE
+    try:
+        data = json.loads(path.read_text())
+        return dict(data["metrics"])
+    except FileNotFoundError:
+        raise PipelineError(f"{path}: stage {stage!r} has not finished; run it first") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise PipelineError(f"{path}: unreadable stage record ({exc}); delete it to re-run the stage") from None
+
+
+def _write_json_atomic(path: Path, data: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def _mark_done(work: Path, stage: str, metrics: dict[str, Any]) -> None:
+    _write_json_atomic(stage_dir(work, stage) / DONE, {"stage": stage, "metrics": metrics})
+
+
+def _require(work: Path, *stages: str) -> None:
+    for s in stages:
+        if not is_done(work, s):
+            raise PipelineError(f"{stage_dir(work, s)}: stage {s!r} has not finished; run the stages in order "
+                                f"({', '.join(STAGES)})")  # fmt: skip
+
+
+def _emit(progress: Progress | None, stage: str, fraction: float, message: str,
+          metrics: dict[str, float] | None = None) -> None:
+    if progress is not None:
+        progress(StageProgress(stage, float(min(max(fraction, 0.0), 1.0)), message, dict(metrics or {})))
+
+
+# -- the capture in the normalised frame ------------------------------------------------------------------------
+def _open_capture(capture: Path) -> Capture:
+    try:
+        return load_capture(capture)
+    except CaptureError as exc:
+        raise PipelineError(f"{capture}: {exc}") from None
+
+
+def normalisation(mesh: Mesh) -> tuple[np.ndarray, float]:
+    """(centre [3], scale) into the unit sphere; the identity when the mesh is already inside it (synthetic
+    objects and captures made in the preset frame keep their coordinates)."""
+    if float(np.linalg.norm(mesh.vertices, axis=1).max()) <= 1.0 + PRESET_TOLERANCE:
+        return np.zeros(3, dtype=np.float32), 1.0
+    return mesh.normalization()
+
+
+@dataclass
+class _Normalised:
+    capture: Capture
+    mesh: Mesh
+    cameras: list[Camera]
+    envmap: EnvironmentMap
+    centre: np.ndarray
+    scale: float
+
+
+def _normalised(cap: Capture, work: Path, device: torch.device) -> _Normalised:
+    """The capture's mesh, cameras and lighting in the frame prepare_views chose (views.json)."""
+    record = json.loads((stage_dir(work, "prepare_views") / "views.json").read_text())
+    centre, scale = np.asarray(record["centre"], dtype=np.float32), float(record["scale"])
+    raw = cap.load_mesh()
+    mesh = Mesh(((raw.vertices - centre) * scale).astype(np.float32), raw.faces, raw.vertex_normals, raw.uvs)
+    cameras = [c.normalized(centre, scale) for c in cap.cameras]
+    envmap = EnvironmentMap(cap.load_envmap(), cap.envmap_to_world, 1.0, device)
+    return _Normalised(cap, mesh, cameras, envmap, centre, scale)
+
+
+def _display_tonemap(tonemap: Tonemap) -> Tonemap:
+    """What the LMRM reads: the capture's exposure with the sRGB transfer."""
+    return Tonemap(tonemap.exposure, "srgb")
+
+
+def _preset_frames(cameras: list[Camera]) -> list[int] | None:
+    """Frame index of each of the 23 preset views, if the capture has them all (any square resolution)."""
+    found = []
+    for k in range(23):
+        match = None
+        for i, cam in enumerate(cameras):
+            preset = preset_views(cam.width)[k] if cam.width == cam.height else None
+            if preset is not None and np.abs(np.asarray(cam.c2w) - preset.c2w).max() < PRESET_TOLERANCE and \
+                    abs(cam.fl_x - preset.fl_x) < PRESET_TOLERANCE * preset.fl_x:
+                match = i
+                break
+        if match is None:
+            return None
+        found.append(match)
+    return found
+
+
+# -- stages ---------------------------------------------------------------------------------------------------
+def _stage_validate(capture: Path, work: Path, config: ExtractConfig, progress: Progress | None) -> dict[str, Any]:
+    _emit(progress, "validate", 0.0, f"validating {capture}")
+    problems = validate_capture(capture)
+    if problems:
+        lines = "\n".join(f"  {p}" for p in problems)
+        raise PipelineError(f"{capture}: {len(problems)} problem(s) with the capture:\n{lines}")
+    with _open_capture(capture) as cap:
+        mesh = cap.load_mesh()
+        return {"frames": len(cap.frames), "faces": mesh.num_faces}
+
+
+def _stage_prepare_views(capture: Path, work: Path, config: ExtractConfig,
+                         progress: Progress | None) -> dict[str, Any]:
+    from safetensors.torch import save_file
+
+    from neumatex_core.imageio import write_image
+    from neumatex_core.novel_view.lumigraph import Photo, blend_views
+    from neumatex_core.render.views import contact_sheet
+
+    out = stage_dir(work, "prepare_views")
+    with _open_capture(capture) as cap:
+        raw = cap.load_mesh()
+        centre, scale = normalisation(raw)
+        mesh = Mesh(((raw.vertices - centre) * scale).astype(np.float32), raw.faces, raw.vertex_normals, raw.uvs)
+        cameras = [c.normalized(centre, scale) for c in cap.cameras]
+        display_tm = _display_tonemap(cap.tonemap)
+        frames = _preset_frames(cameras)
+        if frames is not None:
+            source = "the capture's preset views"
+            imgs, masks = [], []
+            for k, i in enumerate(frames):
+                lin = cap.tonemap.display_to_linear(cap.load_image(i))
+                imgs.append(torch.as_tensor(display_tm.apply_numpy(lin)))
+                m = cap.load_mask(i)
+                cover = render_gbuffer(mesh, cameras[i]).mask
+                masks.append(cover if m is None else cover & torch.as_tensor(m))
+                _emit(progress, "prepare_views", (k + 1) / 23, f"preset view {k + 1}/23 from frame {i}")
+            display = torch.stack(imgs).float()
+            mask = torch.stack(masks)
+            observed = mask.clone()
+            resolution = int(display.shape[1])
+        else:
+            source = f"blended from {len(cap.frames)} photos (unstructured lumigraph)"
+            photos = []
+            for i in range(len(cap.frames)):
+                lin = cap.tonemap.display_to_linear(cap.load_image(i))
+                photos.append(Photo(lin.astype(np.float32), cameras[i], cap.load_mask(i)))
+            resolution = config.view_resolution
+            views = blend_views(mesh, photos, preset_views(resolution), k=config.blend_k,
+                                progress=lambda d, n: _emit(progress, "prepare_views", d / n, f"blended view {d}/{n}"))
+            display = display_tm.apply(views.images).float()
+            mask, observed = views.mask, views.observed
+    save_file({"display": display.contiguous(), "mask": mask.to(torch.uint8).contiguous(),
+               "observed": observed.to(torch.uint8).contiguous()}, str(out / "views.safetensors"))  # fmt: skip
+    write_image(out / "views.png", contact_sheet([d.numpy() for d in display], columns=6))
+    _write_json_atomic(out / "views.json", {"centre": [float(c) for c in centre], "scale": float(scale),
+                                            "source": source, "resolution": resolution})  # fmt: skip
+    return {"resolution": resolution, "observed_fraction": float(observed.sum() / mask.sum().clamp_min(1)),
+            "source": source}
+
+
+def _load_lmrm(config: ExtractConfig, device: torch.device) -> LMRM:
+    from neumatex_core.lmrm import load_lmrm
+    from neumatex_core.lmrm.inference import load_lmrm_from
+
+    if config.lmrm_weights:
+        weights = Path(config.lmrm_weights)
+        return load_lmrm_from(weights, weights.with_suffix(".json"), device)
+    return load_lmrm(device)
+
+
+def _random_prediction(seed: int) -> LMRMPrediction:
+    """A random triplane with freshly initialised (seeded, frozen) decoders: the start when no LMRM exists."""
+    g = torch.Generator().manual_seed(seed)
+    channels, resolution = RANDOM_TRIPLANE
+    triplane = Triplane(channels, resolution, init_std=0.1, generator=g)
+    torch.manual_seed(seed)
+    decs = (MaterialDecoder(triplane.feature_dim), UncertaintyDecoder(triplane.feature_dim),
+            PBRDecoder(triplane.feature_dim))  # fmt: skip
+    for d in decs:
+        d.requires_grad_(False)
+    return LMRMPrediction(triplane, *decs)
+
+
+def _stage_lmrm(capture: Path, work: Path, config: ExtractConfig, progress: Progress | None) -> dict[str, Any]:
+    from safetensors.torch import load_file, save_file
+
+    from neumatex_core.lmrm.inference import LMRMError
+
+    out = stage_dir(work, "lmrm")
+    device = config.torch_device()
+    _emit(progress, "lmrm", 0.0, "loading the LMRM")
+    try:
+        lmrm: LMRM | None = _load_lmrm(config, device)
+    except LMRMError as exc:
+        if config.init == "lmrm":
+            raise PipelineError(f"LMRM initialisation needs a trained LMRM checkpoint, which is not available: {exc}. "
+                                "Extract with init='random' (--init random) until the checkpoint ships.") from None
+        lmrm = None
+    if lmrm is not None:
+        views = load_file(str(stage_dir(work, "prepare_views") / "views.safetensors"))
+        with _open_capture(capture) as cap:
+            norm = _normalised(cap, work, device)
+            resolution = int(views["display"].shape[1])
+            t0 = time.perf_counter()
+            pred = lmrm.predict(views["display"].float(), preset_views(resolution), norm.mesh, norm.envmap)
+            seconds_predict = time.perf_counter() - t0
+        source, trained = "lmrm", True
+        info = {k: lmrm.record.get(k) for k in ("sha256", "basis_id") if k in lmrm.record}
+    else:
+        pred = _random_prediction(config.seed)
+        source, trained, info, seconds_predict = "random (no trained LMRM)", False, {}, 0.0
+    tensors = {"triplane.planes": pred.triplane.planes.detach().cpu().contiguous()}
+    decoders = {"material": pred.material_decoder, "uncertainty": pred.uncertainty_decoder, "pbr": pred.pbr_decoder}
+    record: dict[str, Any] = {"source": source, "trained": trained, "lmrm": info, "decoders": {}}
+    for kind, dec in decoders.items():
+        for k, v in dec.state_dict().items():
+            tensors[f"decoder.{kind}.{k}"] = v.detach().cpu().float().contiguous()
+        record["decoders"][kind] = {"id": module_id(dec), "architecture": dec.architecture()}
+    save_file(tensors, str(out / "prediction.safetensors"))
+    _write_json_atomic(out / "prediction.json", record)
+    _emit(progress, "lmrm", 1.0, f"prediction: {source}")
+    return {"trained": trained, "source": source, "predict_s": seconds_predict}
+
+
+def load_prediction(work: Path, device: torch.device | str = "cpu") -> tuple[LMRMPrediction, dict[str, Any]]:
+    """The lmrm stage's stored prediction (frozen decoders) and its record."""
+    from safetensors.torch import load_file
+
+    folder = stage_dir(work, "lmrm")
+    record = json.loads((folder / "prediction.json").read_text())
+    tensors = load_file(str(folder / "prediction.safetensors"))
+    decs: dict[str, torch.nn.Module] = {}
+    for kind, rec in record["decoders"].items():
+        dec = DECODERS[kind](**rec["architecture"])
+        prefix = f"decoder.{kind}."
+        dec.load_state_dict({k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)})
+        dec.requires_grad_(False)
+        decs[kind] = dec.to(device)
+    mat, unc, pbr = decs["material"], decs["uncertainty"], decs["pbr"]
+    assert isinstance(mat, MaterialDecoder) and isinstance(unc, UncertaintyDecoder) and isinstance(pbr, PBRDecoder)
+    triplane = Triplane.from_planes(tensors["triplane.planes"].to(device))
+    triplane.requires_grad_(False)
+    return LMRMPrediction(triplane, mat, unc, pbr), record
+
+
+def _photo_set(norm: _Normalised, device: torch.device) -> PhotoSet:
+    cap = norm.capture
+    images = [cap.load_image(i) for i in range(len(cap.frames))]
+    masks = [cap.load_mask(i) for i in range(len(cap.frames))]
+    return PhotoSet(images, norm.cameras, norm.mesh, masks, device)
+
+
+def effective_tto(config: ExtractConfig, trained: bool) -> TTOConfig:
+    """The TTO config actually run: without a trained LMRM there is no anchor, so reg is "none"."""
+    tto = config.tto_config()
+    return tto if trained else replace(tto, reg="none")
+
+
+def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progress | None,
+               should_stop: ShouldStop | None) -> dict[str, Any]:
+    from safetensors.torch import save_file
+
+    out = stage_dir(work, "tto")
+    device = config.torch_device()
+    pred, record = load_prediction(work, device)
+    tto = effective_tto(config, bool(record["trained"]))
+    if tto.reg == "oracle":
+        raise PipelineError("reg='oracle' needs ground-truth G-buffers; it is an evaluation variant (neumatex eval)")
+    with _open_capture(capture) as cap:
+        norm = _normalised(cap, work, device)
+        photos = _photo_set(norm, device)
+        tonemap = cap.tonemap
+    basis = load_basis(str(device))
+    problem = build_problem(tto, norm.mesh, norm.envmap, photos, tonemap, pred, basis,
+                            anchor_available=bool(record["trained"]))  # fmt: skip
+    t0 = time.perf_counter()
+
+    def on_step(step: int, total: int, row: dict[str, float]) -> None:
+        _emit(progress, "tto", step / total, f"step {step}/{total} loss {row['loss']:.4g} PSNR {row['psnr']:.2f} dB",
+              row)
+
+    result = optimise(problem, tto, on_step, should_stop, checkpoint=out / "checkpoint.pt")
+    if not result.finished:
+        raise Cancelled(f"stopped at TTO step {result.steps_done}/{tto.steps}; the checkpoint {out / 'checkpoint.pt'} "
+                        "resumes it")  # fmt: skip
+    save_file({"tensor": result.params.tensor.detach().cpu().contiguous()}, str(out / "result.safetensors"))
+    _write_json_atomic(out / "history.json", result.history)
+    tail = result.history[-max(1, len(result.history) // 10):]
+    return {"steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),
+            "psnr_batch": float(np.mean([r["psnr"] for r in tail])), "photo_pixels": photos.size,
+            "tto_s": time.perf_counter() - t0, "field": tto.field, "init": tto.init, "reg": tto.reg,
+            "material": tto.material}  # fmt: skip
+
+
+def _gbuffer_images(field_gbuffer: Callable[[torch.Tensor], torch.Tensor], mesh: Mesh, camera: Camera,
+                    unc: Callable[[torch.Tensor], torch.Tensor] | None) -> list[tuple[str, np.ndarray]]:
+    gb = render_gbuffer(mesh, camera)
+    idx = gb.mask.reshape(-1)
+    h, w = camera.height, camera.width
+
+    def image(values: torch.Tensor) -> np.ndarray:
+        full = torch.ones(h * w, 3)
+        full[idx] = values.detach().cpu().float()
+        return full.reshape(h, w, 3).numpy()
+
+    with torch.no_grad():
+        pts = gb.position.reshape(-1, 3)[idx]
+        g = field_gbuffer(pts).cpu()
+        items = [("base colour", image(g[:, :3] ** (1 / 2.2))), ("latent 0-2", image((g[:, 3:6] + 1) / 2)),
+                 ("latent 3-5", image((g[:, 6:9] + 1) / 2))]  # fmt: skip
+        if unc is not None:
+            sd = torch.exp(0.5 * unc(pts).cpu()).mean(-1, keepdim=True)
+            items.append(("LMRM std (mean over channels, x4)", image((4 * sd).clamp(0, 1).expand(-1, 3))))
+    return items
+
+
+def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Progress | None) -> dict[str, Any]:
+    from safetensors.torch import load_file
+
+    from neumatex_core.assets import asset_from_textures, asset_from_triplane, write_asset
+    from neumatex_core.assets.render import make_previews, render_asset
+    from neumatex_core.assets.uv_unwrap import unwrap
+    from neumatex_core.eval.metrics import psnr
+    from neumatex_core.fields.neural_field import TriplaneMaterialField
+    from neumatex_core.render.path_tracer import PathTracerConfig
+    from neumatex_core.report import ReportContent, write_report
+
+    device = config.torch_device()
+    pred, record = load_prediction(work, device)
+    tto = effective_tto(config, bool(record["trained"]))
+    if tto.material != "neural":
+        raise PipelineError("material='pbr' is the PBR baseline for evaluation; an asset holds a neural material")
+    tensor = load_file(str(stage_dir(work, "tto") / "result.safetensors"))["tensor"].to(device)
+    history = json.loads((stage_dir(work, "tto") / "history.json").read_text())
+    stage_metrics = {s: read_done(work, s) for s in STAGES[:-1]}
+    timings = {f"{s}_s": float(m.get("seconds", 0.0)) for s, m in stage_metrics.items()}
+    timings.update({f"{s}_cpu_s": float(m.get("cpu_seconds", 0.0)) for s, m in stage_metrics.items()})
+    basis = load_basis(str(device))
+    with _open_capture(capture) as cap:
+        norm = _normalised(cap, work, device)
+        name = config.name or cap.root.name
+        provenance = {"capture": str(capture), "frames": len(cap.frames), "preset": config.preset_name,
+                      "prediction": record["source"], "tto": tto.to_dict(),
+                      "views": stage_metrics["prepare_views"].get("source", "")}  # fmt: skip
+        _emit(progress, "export", 0.05, "baking textures and fitting the PBR fallback")
+        metrics = {"tto_loss": float(stage_metrics["tto"]["loss"]),
+                   "tto_psnr_batch": float(stage_metrics["tto"]["psnr_batch"]),
+                   "tto_steps": float(stage_metrics["tto"]["steps"])}  # fmt: skip
+        if tto.field == "triplane":
+            triplane = Triplane.from_planes(tensor)
+            triplane.requires_grad_(False)
+            field_ = TriplaneMaterialField(triplane, pred.material_decoder, basis)
+            extra: dict[str, torch.nn.Module] = {"uncertainty": pred.uncertainty_decoder, "pbr": pred.pbr_decoder}
+            asset = asset_from_triplane(name, norm.mesh, field_, config.texture_resolution, extra_decoders=extra,
+                                        provenance=provenance, metrics=metrics, timings=timings)  # fmt: skip
+
+            def gbuffer(p: torch.Tensor) -> torch.Tensor:
+                return torch.cat(field_.gbuffer(p.to(device)), dim=-1)
+        else:
+            mesh = norm.mesh if norm.mesh.vertex_normals is not None else norm.mesh.with_smooth_normals()
+            uv_mesh = unwrap(mesh, tto.uv_resolution)
+            asset = asset_from_textures(name, uv_mesh, tensor.detach(), basis, provenance=provenance, metrics=metrics,
+                                        timings=timings)  # fmt: skip
+            gbuffer = None  # type: ignore[assignment]
+        asset.centre, asset.scale = [float(c) for c in norm.centre], float(norm.scale)
+        _emit(progress, "export", 0.4, "rendering previews")
+        make_previews(asset, norm.envmap, config.preview_resolution, config.preview_spp, tonemap=cap.tonemap)
+        photo_items: list[tuple[str, np.ndarray]] = []
+        n_eval = min(config.eval_photos, len(cap.frames))
+        if n_eval:
+            _emit(progress, "export", 0.6, f"re-rendering {n_eval} photos")
+            picks = np.linspace(0, len(cap.frames) - 1, n_eval).round().astype(int).tolist()
+            cams = [norm.cameras[i] for i in picks]
+            renders = render_asset(asset, norm.envmap, cams, PathTracerConfig(spp=config.eval_spp,
+                                   max_bounces=max(tto.max_bounces, 2)), seed=config.seed)  # fmt: skip
+            scores = []
+            for i, img in zip(picks, renders, strict=True):
+                photo = torch.as_tensor(cap.load_image(i))
+                shown = cap.tonemap.apply(img.cpu())
+                m = render_gbuffer(norm.mesh, norm.cameras[i]).mask
+                user = cap.load_mask(i)
+                if user is not None:
+                    m = m & torch.as_tensor(user)
+                scores.append(psnr(shown, photo, m))
+                photo_items += [(f"photo {i}", photo.numpy()), (f"ours {i}", shown.numpy())]
+            asset.metrics["psnr_photos"] = float(np.mean(scores))
+            asset.metrics["psnr_photos_spp"] = float(config.eval_spp)
+        out = stage_dir(work, "export")
+        target = out / ASSET_DIR
+        _emit(progress, "export", 0.8, "writing the asset")
+        write_asset(asset, target, overwrite=True)
+        sections: dict[str, list[tuple[str, np.ndarray]]] = {
+            "Preview renders (neural field, then PBR fallback)": sorted(asset.previews.items()),
+            "Photos and re-renders": photo_items,
+        }
+        if gbuffer is not None:
+            def lmrm_unc(p: torch.Tensor) -> torch.Tensor:
+                return pred.uncertainty_decoder(pred.triplane.features(p.to(device)))
+
+            unc = lmrm_unc if record["trained"] else None
+            def lmrm_gbuffer(p: torch.Tensor) -> torch.Tensor:
+                return torch.cat(pred.material_decoder(pred.triplane.features(p.to(device))), dim=-1)
+
+            gb_items = []
+            for v in (0, 4):
+                cam = preset_views(config.preview_resolution)[v]
+                gb_items += [(f"view {v} ours {c}", img) for c, img in _gbuffer_images(gbuffer, norm.mesh, cam, None)]
+                if record["trained"]:
+                    gb_items += [(f"view {v} LMRM {c}", img)
+                                 for c, img in _gbuffer_images(lmrm_gbuffer, norm.mesh, cam, unc)]  # fmt: skip
+            sections["Material G-buffers (ours after TTO; the LMRM's prediction and uncertainty)"] = gb_items
+        notes = [f"Capture {capture}; {len(cap.frames)} photos; preset views: {provenance['views']}.",
+                 f"Start: {record['source']}; TTO {tto.steps} steps of {tto.pixels} pixels x {tto.spp} spp, "
+                 f"{tto.max_bounces} bounces; field {tto.field}, init {tto.init}, reg {tto.reg}."]  # fmt: skip
+        if not record["trained"]:
+            notes.append("No trained LMRM checkpoint was available: the triplane started from random values and the "
+                         "TTO ran without the uncertainty regulariser.")  # fmt: skip
+        report = write_report(ReportContent(f"NeuMatEx extraction: {name}", sections, history, asset.metrics,
+                                            asset.timings, {"preset": config.preset_name, **tto.to_dict()}, notes),
+                              target / "report")  # fmt: skip
+    return {**asset.metrics, "asset": str(target), "report": str(report)}
+
+
+_RUNNERS: dict[str, Callable[..., dict[str, Any]]] = {
+    "validate": _stage_validate,
+    "prepare_views": _stage_prepare_views,
+    "lmrm": _stage_lmrm,
+    "export": _stage_export,
+}
+
+
+def run_stage(stage: str, capture: Path, work: Path, config: ExtractConfig, progress: Progress | None = None,
+              should_stop: ShouldStop | None = None) -> dict[str, Any]:
+    """Run one stage (see the module docstring); returns its metrics (stored in work/<stage>/done.json).
+
+    Idempotent: a finished stage returns its stored metrics. Raises PipelineError for bad input or missing earlier
+    stages, Cancelled when should_stop() is true."""
+    if stage not in STAGES:
+        raise PipelineError(f"unknown stage {stage!r} (expected one of {', '.join(STAGES)})")
+    capture, work = Path(capture), Path(work)
+    if is_done(work, stage):
+        return read_done(work, stage)
+    _require(work, *STAGES[:STAGES.index(stage)])
+    if should_stop is not None and should_stop():
+        raise Cancelled(f"stopped before stage {stage!r}")
+    stage_dir(work, stage).mkdir(parents=True, exist_ok=True)
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        if stage == "tto":
+            metrics = _stage_tto(capture, work, config, progress, should_stop)
+        else:
+            metrics = _RUNNERS[stage](capture, work, config, progress)
+    except (PipelineError, Cancelled):
+        raise
+    except (ValueError, OSError) as exc:  # our loaders' errors (CaptureError, MeshError, ...) name the file
+        raise PipelineError(f"stage {stage}: {exc}") from exc
+    metrics["seconds"] = time.perf_counter() - t0
+    metrics["cpu_seconds"] = time.process_time() - c0  # all threads: the wall time on an idle machine is about
+    # cpu_seconds / threads, whatever else the machine ran meanwhile
+    if stage == "tto":
+        metrics["minutes"] = metrics["seconds"] / 60
+    _mark_done(work, stage, metrics)
+    _emit(progress, stage, 1.0, f"{stage} done in {metrics['seconds']:.1f} s", _numbers(metrics))
+    return metrics
+
+
+def _numbers(metrics: dict[str, Any]) -> dict[str, float]:
+    return {k: float(v) for k, v in metrics.items() if isinstance(v, int | float) and math.isfinite(float(v))}
+
+
+def default_work(out: Path) -> Path:
+    """The work folder of an extraction into `out` when none is given: a sibling `.<name>.work`."""
+    out = Path(out)
+    return out.parent / f".{out.name}.work"
+
+
+def extract(capture: Path, out: Path, config: ExtractConfig, progress: Progress | None = None,
+            should_stop: ShouldStop | None = None, work: Path | None = None) -> Path:
+    """Run every stage in order (finished ones are skipped), then copy the asset to `out` (a folder, or a .zip
+    when out ends in .zip); returns out."""
+    capture, out = Path(capture), Path(out)
+    work = Path(work) if work is not None else default_work(out)
+    work.mkdir(parents=True, exist_ok=True)
+    for stage in STAGES:
+        run_stage(stage, capture, work, config, progress, should_stop)
+    source = asset_path(work)
+    if not (source / "manifest.json").is_file():
+        raise PipelineError(f"{source}: the export stage finished but its asset is missing; delete "
+                            f"{stage_dir(work, 'export') / DONE} to re-export")  # fmt: skip
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        if out.suffix.lower() == ".zip":
+            made = Path(shutil.make_archive(str(tmp / "asset"), "zip", root_dir=source))
+        else:
+            made = tmp / "asset"
+            shutil.copytree(source, made)
+        if out.exists():
+            shutil.rmtree(out) if out.is_dir() else out.unlink()
+        os.replace(made, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out

@@ -1,0 +1,95 @@
+"""The extraction report: one HTML page with PNGs beside it, written into the asset folder's report/.
+
+Shows the preview renders (neural field and PBR fallback), the photos next to re-renders of the result, the
+material G-buffers of preset views (base colour, latent channels 0-2 and 3-5 as (l + 1) / 2, the LMRM's
+predicted standard deviation where an LMRM was used), the loss and PSNR curves of the TTO, metrics and timings.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neumatex_core.imageio import write_image
+from neumatex_core.lmrm.plots import line_chart
+from neumatex_core.render.views import contact_sheet
+
+
+@dataclass
+class ReportContent:
+    """title; images: caption -> display image [H, W, 3] in [0, 1] (tiled per section); history: TTO rows;
+    metrics, timings, settings: flat tables; notes: sentences shown at the top."""
+
+    title: str
+    sections: dict[str, list[tuple[str, np.ndarray]]] = field(default_factory=dict)
+    history: list[dict[str, float]] = field(default_factory=list)
+    metrics: dict[str, float] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    settings: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in text.lower()).strip("_")
+
+
+def _table(rows: dict[str, Any]) -> str:
+    def fmt(v: Any) -> str:
+        return f"{v:.4g}" if isinstance(v, float) else html.escape(str(v))
+
+    body = "".join(f"<tr><th>{html.escape(k)}</th><td>{fmt(v)}</td></tr>" for k, v in rows.items())
+    return f"<table>{body}</table>"
+
+
+def _sheet(images: Sequence[np.ndarray], columns: int) -> np.ndarray:
+    h = max(img.shape[0] for img in images)
+    w = max(img.shape[1] for img in images)
+    padded = []
+    for img in images:
+        canvas = np.ones((h, w, 3), dtype=np.float32)
+        canvas[:img.shape[0], :img.shape[1]] = np.clip(img[:, :, :3], 0, 1)
+        padded.append(canvas)
+    return contact_sheet(padded, columns=columns)
+
+
+def write_report(content: ReportContent, folder: Path) -> Path:
+    """Write folder/index.html, one PNG per section, curves.png and history.json; returns the HTML path."""
+    folder.mkdir(parents=True, exist_ok=True)
+    parts = [f"<h1>{html.escape(content.title)}</h1>"]
+    parts += [f"<p>{html.escape(n)}</p>" for n in content.notes]
+    for name, items in content.sections.items():
+        if not items:
+            continue
+        png = f"{_slug(name)}.png"
+        write_image(folder / png, _sheet([img for _, img in items], columns=min(len(items), 6)))
+        captions = ", ".join(html.escape(c) for c, _ in items)
+        parts.append(f"<h2>{html.escape(name)}</h2><img class='sheet' src='{png}'><p class='cap'>{captions}</p>")
+    if content.history:
+        steps = [r["step"] for r in content.history]
+        line_chart([
+            ("loss (total, photometric)", {"loss": (steps, [r["loss"] for r in content.history]),
+                                           "photo": (steps, [r["photo"] for r in content.history])}, True),
+            ("batch PSNR (dB, tonemapped)", {"psnr": (steps, [r["psnr"] for r in content.history])}, False),
+        ], folder / "curves.png")  # fmt: skip
+        (folder / "history.json").write_text(json.dumps(content.history) + "\n")
+        parts.append("<h2>TTO curves</h2><img src='curves.png'>"
+                     "<p class='cap'>per step; history.json has the values</p>")
+    for name, rows in (("Metrics", content.metrics), ("Timings (seconds)", content.timings),
+                       ("Settings", content.settings)):  # fmt: skip
+        if rows:
+            parts.append(f"<h2>{name}</h2>{_table(rows)}")
+    style = ("body{font-family:sans-serif;margin:2em;max-width:1200px} img{image-rendering:pixelated;max-width:100%}"
+             " .sheet{width:100%}"
+             " table{border-collapse:collapse} th,td{border:1px solid #ccc;padding:2px 8px;text-align:left}"
+             " .cap{color:#555;font-size:90%}")  # fmt: skip
+    page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(content.title)}</title>"
+            f"<style>{style}</style></head><body>{''.join(parts)}</body></html>\n")
+    path = folder / "index.html"
+    path.write_text(page)
+    return path

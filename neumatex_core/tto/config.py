@@ -1,0 +1,95 @@
+"""`TTOConfig`: the schedule, sample counts and ablation switches of test-time optimisation (DESIGN.md section 6).
+
+Presets: "cpu" (the default: a few minutes per object on 2 cores), "gpu" (quality: more steps, larger ray batches,
+more bounces) and "tiny" (tests: seconds). The switches select the paper's variants:
+
+- field: "triplane" (ours) or "uv" (latent UV textures on an xatlas unwrap; ablation);
+- init: "lmrm" (the LMRM's triplane) or "random" (a random triplane, same frozen decoders; ablation);
+- reg: "uncertainty" (ours: weights exp(-log_var) of the LMRM), "none", or "oracle" (weights 1 / squared error of
+  the LMRM G-buffers against ground truth; needs a synthetic object's ground truth);
+- material: "neural" (ours) or "pbr" (the NVDiffRecMC++ baseline: the same loop with the LMRM's PBR head).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, Literal
+
+FieldKind = Literal["triplane", "uv"]
+InitKind = Literal["lmrm", "random"]
+RegKind = Literal["uncertainty", "none", "oracle"]
+MaterialKind = Literal["neural", "pbr"]
+PRESETS = ("tiny", "cpu", "gpu")
+
+
+@dataclass(frozen=True)
+class TTOConfig:
+    """steps: Adam steps; pixels: photo pixels per step (drawn uniformly over the foreground of all photos);
+    spp: path samples per pixel; max_bounces: surface interactions per path; lr: Adam learning rate (cosine-decayed
+    to lr * lr_final); lambda_reg: weight of the uncertainty-weighted anchor; reg_points: surface points per step
+    for the anchor (drawn from a fixed pool of `reg_pool` area-uniform points); uv_resolution: texels of the UV
+    ablation's textures; random_std: standard deviation of a random triplane; checkpoint_every: steps between
+    checkpoints (0: only when stopped); seed: every random draw of step s depends only on (seed, s).
+
+    The loss is taken after the (concave) tonemap, so few samples per pixel bias it: the presets spend rays on
+    spp >= 8 rather than on more pixels (docs/design-notes.md, item 21), and max_bounces should match the
+    photos' light transport (3 for synthetic objects)."""
+
+    steps: int = 400
+    pixels: int = 1024
+    spp: int = 8
+    max_bounces: int = 3
+    lr: float = 0.02
+    lr_final: float = 0.1
+    lambda_reg: float = 0.02
+    reg_points: int = 1024
+    reg_pool: int = 1 << 15
+    uv_resolution: int = 128
+    random_std: float = 0.1
+    checkpoint_every: int = 50
+    seed: int = 0
+    field: FieldKind = "triplane"
+    init: InitKind = "lmrm"
+    reg: RegKind = "uncertainty"
+    material: MaterialKind = "neural"
+
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> TTOConfig:
+        """'tiny', 'cpu' (default) or 'gpu', with field overrides."""
+        if name == "tiny":
+            base = cls(steps=12, pixels=128, spp=2, max_bounces=1, lr=0.05, reg_points=256, reg_pool=4096,
+                       uv_resolution=32, checkpoint_every=4)  # fmt: skip
+        elif name == "cpu":
+            base = cls()
+        elif name == "gpu":
+            base = cls(steps=3000, pixels=8192, spp=16, max_bounces=4, lr=0.01, reg_points=16384, reg_pool=1 << 18,
+                       uv_resolution=512, checkpoint_every=200)  # fmt: skip
+        else:
+            raise ValueError(f"unknown TTO preset {name!r} (expected one of {', '.join(PRESETS)})")
+        return replace(base, **overrides)
+
+    def check(self) -> None:
+        """ValueError naming the first bad field."""
+        for name in ("steps", "pixels", "spp", "max_bounces", "reg_points", "reg_pool", "uv_resolution"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"TTO {name} must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0 or not 0 < self.lr_final <= 1:
+            raise ValueError(f"TTO lr must be > 0 and lr_final in (0, 1], got {self.lr} and {self.lr_final}")
+        if self.lambda_reg < 0:
+            raise ValueError(f"TTO lambda_reg must be >= 0, got {self.lambda_reg}")
+        choices = {"field": ("triplane", "uv"), "init": ("lmrm", "random"), "reg": ("uncertainty", "none", "oracle"),
+                   "material": ("neural", "pbr")}  # fmt: skip
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"TTO {name} must be one of {allowed}, got {getattr(self, name)!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TTOConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown TTO config keys {unknown}")
+        return cls(**data)

@@ -1,0 +1,93 @@
+"""TTO's inputs: the photos as random pixel batches, and area-uniform surface samples for the anchor.
+
+`PhotoSet` holds every photo's display values (what the capture's tonemap T makes of radiance) and its camera in
+the normalised frame; `batch(n, spp, generator)` draws n foreground pixels uniformly over all photos and gives
+`spp` jittered rays through each, so a step costs n * spp paths whatever the photos' size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from neumatex_core.geometry.camera import Camera
+from neumatex_core.geometry.gbuffer import render_gbuffer
+from neumatex_core.geometry.mesh import Mesh
+from neumatex_core.geometry.raycast import RayCaster
+
+
+@dataclass
+class RayBatch:
+    """origins, directions [n * spp, 3] (samples of one pixel contiguous); target [n, 3] display values."""
+
+    origins: torch.Tensor
+    directions: torch.Tensor
+    target: torch.Tensor
+    spp: int
+
+
+class PhotoSet:
+    """Photos (display values [H, W, 3] in [0, 1], one camera each, optional foreground masks [H, W]) on `mesh`.
+
+    Foreground = the mesh covers the pixel centre (a ray query) and, where a mask is given, the mask is set."""
+
+    def __init__(self, images: Sequence[np.ndarray], cameras: Sequence[Camera], mesh: Mesh,
+                 masks: Sequence[np.ndarray | None] | None = None, device: torch.device | str = "cpu") -> None:
+        if len(images) != len(cameras) or not images:
+            raise ValueError(f"need one camera per photo, got {len(images)} photos and {len(cameras)} cameras")
+        self.device = torch.device(device)
+        self.cameras = list(cameras)
+        caster = RayCaster(mesh)
+        colours, pixels = [], []
+        for f, (img, cam) in enumerate(zip(images, cameras, strict=True)):
+            if img.shape[:2] != (cam.height, cam.width):
+                raise ValueError(f"photo {f} is {img.shape[1]}x{img.shape[0]}, its camera {cam.width}x{cam.height}")
+            fg = render_gbuffer(mesh, cam, caster).mask
+            m = masks[f] if masks is not None else None
+            if m is not None:
+                fg = fg & torch.as_tensor(np.asarray(m, dtype=bool))
+            yx = fg.nonzero()
+            colours.append(torch.as_tensor(np.ascontiguousarray(img[..., :3]), dtype=torch.float32)[yx[:, 0], yx[:, 1]])
+            pixels.append(torch.cat([torch.full((yx.shape[0], 1), f), yx[:, 1:2], yx[:, 0:1]], dim=1))
+        self.colour = torch.cat(colours).to(self.device)  # [M, 3]
+        self.pixel = torch.cat(pixels).to(self.device)  # [M, 3]: frame, x, y
+        if self.pixel.shape[0] == 0:
+            raise ValueError("the mesh covers no pixel of any photo")
+
+    @property
+    def size(self) -> int:
+        """Foreground pixels over all photos."""
+        return int(self.pixel.shape[0])
+
+    def batch(self, n: int, spp: int, generator: torch.Generator) -> RayBatch:
+        """n pixels drawn uniformly (with replacement) from all foreground pixels, spp jittered rays each."""
+        idx = torch.randint(0, self.size, (n,), generator=generator, device=self.device)
+        pix = self.pixel[idx]
+        jitter = torch.rand(n * spp, 2, generator=generator, device=self.device)
+        xy = pix[:, 1:].repeat_interleave(spp, dim=0).float() + jitter
+        frame = pix[:, 0].repeat_interleave(spp)
+        origins = torch.empty(n * spp, 3, device=self.device)
+        directions = torch.empty(n * spp, 3, device=self.device)
+        for f in torch.unique(frame).tolist():
+            sel = (frame == f).nonzero().squeeze(-1)
+            o, d = self.cameras[f].rays_for_pixels(xy[sel, 0], xy[sel, 1])
+            origins[sel], directions[sel] = o, d
+        return RayBatch(origins, directions, self.colour[idx], spp)
+
+
+def surface_samples(mesh: Mesh, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """n area-uniform points [n, 3] on the mesh and their uvs [n, 2] (None without mesh uvs); deterministic."""
+    rng = np.random.default_rng(seed)
+    v = mesh.vertices[mesh.faces].astype(np.float64)
+    area = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    tri = rng.choice(len(area), size=n, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    b = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
+    points = torch.from_numpy((b[:, :, None] * v[tri]).sum(1).astype(np.float32))
+    if mesh.uvs is None:
+        return points, None
+    uv = mesh.uvs[mesh.faces[tri]].astype(np.float64)
+    return points, torch.from_numpy((b[:, :, None] * uv).sum(1).astype(np.float32))

@@ -1,0 +1,59 @@
+"""TTO's objective (paper eq. 9-11): L = L_photo + lambda_reg * L_reg.
+
+- L_photo: mean over pixels and channels of (T(render) - photo)^2, T the capture's tonemap (display values);
+- L_reg: mean over surface points p and channels c of w_c(p) (G_c(p) - A_c(p))^2, where A is the anchor (the LMRM's
+  G-buffers at p) and w the per-channel weights: exp(-log_var) of the LMRM's uncertainty ("uncertainty"),
+  1 / max(e^2, eps) with e the LMRM's actual error against ground truth ("oracle"), or 0 ("none").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from neumatex_core.capture.tonemap import Tonemap
+
+ORACLE_EPS = 1e-4  # floor of the oracle's squared error (a perfect LMRM channel would get an infinite weight)
+LOG_VAR_MIN = -12.0  # floor of the predicted log-variances: weights at most e^12
+
+
+def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, tonemap: Tonemap) -> torch.Tensor:
+    """L_photo of path samples radiance [n * spp, 3] (linear, samples of one pixel contiguous) against target
+    display values [n, 3]: mean of (T(mean over the spp samples) - target)^2."""
+    pixel = radiance.reshape(-1, spp, 3).mean(1)
+    return ((tonemap.apply(pixel) - target) ** 2).mean()
+
+
+@dataclass
+class Anchor:
+    """Where and what L_reg pulls towards: points [P, 3] (and uvs [P, 2] for UV fields), target [P, K] G-buffer
+    values, weight [P, K] per-channel weights."""
+
+    points: torch.Tensor
+    uv: torch.Tensor | None
+    target: torch.Tensor
+    weight: torch.Tensor
+
+    def to(self, device: torch.device | str) -> Anchor:
+        uv = None if self.uv is None else self.uv.to(device)
+        return Anchor(self.points.to(device), uv, self.target.to(device), self.weight.to(device))
+
+
+def uncertainty_weights(log_var: torch.Tensor) -> torch.Tensor:
+    """exp(-log_var) [P, K] of the predicted log-variances (floored at LOG_VAR_MIN)."""
+    return torch.exp(-log_var.clamp_min(LOG_VAR_MIN))
+
+
+def oracle_weights(predicted: torch.Tensor, truth: torch.Tensor, eps: float = ORACLE_EPS) -> torch.Tensor:
+    """1 / max((predicted - truth)^2, eps) [P, K]: the weights of a perfectly calibrated uncertainty."""
+    return 1.0 / ((predicted - truth) ** 2).clamp_min(eps)
+
+
+def regulariser(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor], anchor: Anchor,
+                index: torch.Tensor) -> torch.Tensor:
+    """L_reg over the anchor points `index` [n]: mean of weight * (gbuffer(points, uv) - target)^2."""
+    uv = None if anchor.uv is None else anchor.uv[index]
+    diff = gbuffer(anchor.points[index], uv) - anchor.target[index]
+    return (anchor.weight[index] * diff * diff).mean()

@@ -1,0 +1,234 @@
+"""The TTO loop (DESIGN.md section 6): Adam on the material field's tensor only, random pixel batches of the
+photos rendered through the differentiable path tracer, an uncertainty-weighted anchor to the LMRM's G-buffers.
+
+    problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis)
+    result = optimise(problem, config, progress=..., should_stop=..., checkpoint=work / "checkpoint.pt")
+
+Every random draw of step s (pixels, jitter, paths, anchor points) comes from a generator seeded with
+(config.seed, s), and the learning rate is a function of s, so a run stopped after step s and resumed from its
+checkpoint gives the same tensor, bit for bit on one device, as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from neumatex_core.assets.bake import bake, rasterize_uv
+from neumatex_core.assets.uv_unwrap import unwrap
+from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.fields.triplane import Triplane
+from neumatex_core.fields.uv_textures import MATERIAL_CHANNELS, PBR_CHANNELS
+from neumatex_core.geometry.mesh import Mesh
+from neumatex_core.lighting.envmap import EnvironmentMap
+from neumatex_core.lmrm.inference import LMRMPrediction
+from neumatex_core.materials.neural_basis import NeuralBasis
+from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
+from neumatex_core.render.scene import Scene
+from neumatex_core.tto.config import TTOConfig
+from neumatex_core.tto.data import PhotoSet, surface_samples
+from neumatex_core.tto.loss import Anchor, oracle_weights, photometric_loss, regulariser, uncertainty_weights
+from neumatex_core.tto.params import PBRUV, NeuralTriplane, NeuralUV, Parametrisation, PBRTriplane
+
+Progress = Callable[[int, int, dict[str, float]], None]
+Truth = Callable[[torch.Tensor], torch.Tensor]  # points [P, 3] -> ground-truth (rho_d, latent) [P, 9]
+CHECKPOINT_FORMAT = "nmx-tto-1"
+
+
+@dataclass
+class TTOProblem:
+    """One object's TTO: the scene mesh (normalised frame; xatlas-unwrapped for UV fields), lighting, photos and
+    their tonemap, the parametrisation being optimised and the anchor (None: no regulariser)."""
+
+    mesh: Mesh
+    envmap: EnvironmentMap
+    photos: PhotoSet
+    tonemap: Tonemap
+    params: Parametrisation
+    anchor: Anchor | None
+    device: torch.device
+
+
+@dataclass
+class TTOResult:
+    """params: the optimised parametrisation; history: one row per step (step, loss, photo, reg, psnr, lr);
+    steps_done of config.steps; finished: False when stopped early; seconds: wall time of this call."""
+
+    params: Parametrisation
+    history: list[dict[str, float]] = field(default_factory=list)
+    steps_done: int = 0
+    finished: bool = False
+    seconds: float = 0.0
+
+
+def _neural_gbuffer(prediction: LMRMPrediction, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(G_mat [P, 9], log_var [P, 9]) of the LMRM at points."""
+    rho, lat, log_var = prediction.gbuffers(points)
+    return torch.cat([rho, lat], dim=-1), log_var
+
+
+def _pbr_gbuffer(prediction: LMRMPrediction, points: torch.Tensor) -> torch.Tensor:
+    base, rough, metal = prediction.pbr(points)
+    return torch.cat([base, rough.unsqueeze(-1), metal.unsqueeze(-1)], dim=-1)
+
+
+def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
+                  prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool = True,
+                  truth: Truth | None = None) -> TTOProblem:
+    """Set up the variant `config` selects. `prediction`: the LMRM's triplane and frozen decoders (the anchor and,
+    with init="lmrm", the starting point); `anchor_available`: False when the prediction is not a trained LMRM's
+    (then config.reg must be "none"); `truth`: ground-truth G-buffers, needed by reg="oracle"."""
+    config.check()
+    device = photos.device
+    if config.reg != "none" and not anchor_available:
+        raise ValueError(f"TTO reg={config.reg!r} anchors to the LMRM's prediction, but there is none (no trained "
+                         "LMRM): use reg='none'")  # fmt: skip
+    if config.reg == "oracle" and (truth is None or config.material != "neural"):
+        raise ValueError("TTO reg='oracle' needs ground-truth G-buffers (a synthetic object) and material='neural'")
+    if config.init == "lmrm" and not anchor_available:
+        raise ValueError("TTO init='lmrm' needs a trained LMRM's prediction; use init='random'")
+    with torch.no_grad():
+        pred_planes = prediction.triplane.planes.detach().to(device)
+        if config.init == "lmrm":
+            planes = pred_planes.clone()
+        else:
+            g = torch.Generator().manual_seed(config.seed)
+            planes = (torch.randn(pred_planes.shape, generator=g) * config.random_std).to(device)
+    anchor_pred = LMRMPrediction(Triplane.from_planes(pred_planes), prediction.material_decoder.to(device),
+                                 prediction.uncertainty_decoder.to(device), prediction.pbr_decoder.to(device))
+    for module in (anchor_pred.triplane, anchor_pred.material_decoder, anchor_pred.uncertainty_decoder,
+                   anchor_pred.pbr_decoder, basis):  # fmt: skip
+        module.requires_grad_(False)
+    start = Triplane.from_planes(planes)
+    start.requires_grad_(True)
+    scene_mesh = mesh if mesh.vertex_normals is not None else mesh.with_smooth_normals()
+    params: Parametrisation
+    if config.field == "uv":
+        scene_mesh = unwrap(scene_mesh, config.uv_resolution)
+        samples = rasterize_uv(scene_mesh, config.uv_resolution)
+        init_field = Triplane.from_planes(planes)
+        if config.material == "neural":
+            init_pred = LMRMPrediction(init_field, anchor_pred.material_decoder, anchor_pred.uncertainty_decoder,
+                                       anchor_pred.pbr_decoder)  # fmt: skip
+            tex = bake(samples, lambda p: _neural_gbuffer(init_pred, p)[0], MATERIAL_CHANNELS, device=device)
+            params = NeuralUV(tex, basis)
+        else:
+            init_pred = LMRMPrediction(init_field, anchor_pred.material_decoder, anchor_pred.uncertainty_decoder,
+                                       anchor_pred.pbr_decoder)  # fmt: skip
+            tex = bake(samples, lambda p: _pbr_gbuffer(init_pred, p), PBR_CHANNELS, device=device)
+            params = PBRUV(tex)
+        params.project()
+    elif config.material == "neural":
+        params = NeuralTriplane(start, anchor_pred.material_decoder, basis)
+    else:
+        params = PBRTriplane(start, anchor_pred.pbr_decoder)
+    anchor = None
+    if config.reg != "none" and config.lambda_reg > 0:
+        points, uv = surface_samples(scene_mesh, config.reg_pool, seed=config.seed)
+        points = points.to(device)
+        uv = None if uv is None else uv.to(device)
+        with torch.no_grad():
+            if config.material == "pbr":
+                target = _pbr_gbuffer(anchor_pred, points)
+                weight = torch.ones_like(target)
+            else:
+                target, log_var = _neural_gbuffer(anchor_pred, points)
+                if config.reg == "oracle":
+                    assert truth is not None
+                    weight = oracle_weights(target, truth(points).to(device))
+                else:
+                    weight = uncertainty_weights(log_var)
+        anchor = Anchor(points, uv, target, weight)
+    return TTOProblem(scene_mesh, envmap, photos, tonemap, params, anchor, device)
+
+
+def learning_rate(config: TTOConfig, step: int) -> float:
+    """Cosine decay from lr to lr * lr_final over the steps."""
+    t = min(step / max(config.steps, 1), 1.0)
+    return config.lr * (config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.Generator:
+    """The generator of every random draw of `step`."""
+    return torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + step)
+
+
+def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametrisation,
+                     opt: torch.optim.Optimizer, history: list[dict[str, float]]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
+                "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history}, tmp)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation,
+                     opt: torch.optim.Optimizer) -> tuple[int, list[dict[str, float]]]:
+    try:
+        state: dict[str, Any] = torch.load(path, map_location=params.tensor.device, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - a torn or foreign file: start over rather than fail
+        raise ValueError(f"{path}: unreadable TTO checkpoint ({exc}); delete it to start the TTO over") from None
+    if state.get("format") != CHECKPOINT_FORMAT or state.get("config") != config.to_dict():
+        raise ValueError(f"{path}: TTO checkpoint of another configuration; delete it to start the TTO over")
+    with torch.no_grad():
+        params.tensor.copy_(state["tensor"])
+    opt.load_state_dict(state["optimizer"])
+    return int(state["step"]), list(state["history"])
+
+
+def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None = None,
+             should_stop: Callable[[], bool] | None = None, checkpoint: Path | None = None) -> TTOResult:
+    """Run (or resume from `checkpoint`) the TTO; see the module docstring. `progress(step, total, row)` after every
+    step; `should_stop()` is checked before every step: when true the state is checkpointed and the result comes
+    back with finished=False."""
+    t0 = time.perf_counter()
+    params = problem.params
+    opt = torch.optim.Adam([params.tensor], lr=config.lr)
+    step, history = 0, list[dict[str, float]]()
+    if checkpoint is not None and checkpoint.is_file():
+        step, history = _load_checkpoint(checkpoint, config, params, opt)
+    scene = Scene(problem.mesh, problem.envmap, params.field(), device=problem.device)
+    tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1),
+                                         spp=config.spp))  # fmt: skip
+    anchor = problem.anchor
+    while step < config.steps:
+        if should_stop is not None and should_stop():
+            if checkpoint is not None:
+                _save_checkpoint(checkpoint, config, step, params, opt, history)
+            return TTOResult(params, history, step, False, time.perf_counter() - t0)
+        g = step_generator(config, step, problem.device)
+        lr = learning_rate(config, step)
+        for group in opt.param_groups:
+            group["lr"] = lr
+        batch = problem.photos.batch(config.pixels, config.spp, g)
+        radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
+        photo = photometric_loss(radiance, batch.target, config.spp, problem.tonemap)
+        loss = photo
+        reg = torch.zeros((), device=problem.device)
+        if anchor is not None:
+            n = anchor.points.shape[0]
+            idx = torch.randint(0, n, (min(config.reg_points, n),), generator=g, device=problem.device)
+            reg = regulariser(params.gbuffer, anchor, idx)
+            loss = photo + config.lambda_reg * reg
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        params.project()
+        step += 1
+        mse = float(photo.detach())
+        row = {"step": float(step), "loss": float(loss.detach()), "photo": mse, "reg": float(reg.detach()),
+               "psnr": 10 * math.log10(1 / max(mse, 1e-12)), "lr": lr}  # fmt: skip
+        history.append(row)
+        if progress is not None:
+            progress(step, config.steps, row)
+        if checkpoint is not None and config.checkpoint_every and step % config.checkpoint_every == 0:
+            _save_checkpoint(checkpoint, config, step, params, opt, history)
+    if checkpoint is not None:
+        _save_checkpoint(checkpoint, config, step, params, opt, history)
+    return TTOResult(params, history, step, True, time.perf_counter() - t0)

@@ -1,0 +1,162 @@
+"""A whole service on this machine as subprocesses: redis-server on a free port (append-only file on, so it can be
+stopped and started again without losing messages), the API under uvicorn, and Celery workers, sharing one data
+folder (SQLite + local storage). Used by tests/service and bench/service.py; each process runs in its own session,
+so `kill9()` reaches a worker's pool children too.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+
+FAST = {"NEUMATEX_HEARTBEAT_S": "0.5", "NEUMATEX_STALE_AFTER_S": "4", "NEUMATEX_REAPER_EVERY_S": "1",
+        "NEUMATEX_REDISPATCH_AFTER_S": "3", "NEUMATEX_PROGRESS_EVERY_S": "0.1"}  # fmt: skip
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_for(check: Callable[[], Any], timeout: float, what: str, every: float = 0.1) -> Any:
+    """Poll `check` until it returns something true; AssertionError naming `what` after `timeout` seconds."""
+    end = time.monotonic() + timeout
+    last: Any = None
+    while time.monotonic() < end:
+        try:
+            last = check()
+            if last:
+                return last
+        except OSError:
+            pass
+        except Exception as exc:  # httpx errors while a process starts
+            last = exc
+        time.sleep(every)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what} (last: {last!r})")
+
+
+class Redis:
+    def __init__(self, folder: Path):
+        self.folder, self.port = folder, free_port()
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.proc: subprocess.Popen[bytes] | None = None
+        folder.mkdir(parents=True, exist_ok=True)
+
+    def ping(self) -> bool:
+        import redis
+
+        try:
+            return bool(redis.Redis(port=self.port, socket_timeout=0.5, socket_connect_timeout=0.5).ping())
+        except redis.RedisError:
+            return False
+
+    def start(self) -> None:
+        exe = shutil.which("redis-server")
+        if exe is None:
+            raise RuntimeError("redis-server not found: `make test` installs it (apt-get install redis-server)")
+        self.proc = subprocess.Popen([exe, "--port", str(self.port), "--bind", "127.0.0.1", "--dir",
+                                      str(self.folder), "--appendonly", "yes", "--appendfsync", "always",
+                                      "--save", ""], stdout=subprocess.DEVNULL)  # fmt: skip
+        wait_for(self.ping, 20, "redis-server")
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.terminate()
+            self.proc.wait(20)
+            self.proc = None
+
+
+class Proc:
+    """A subprocess in its own session with its output appended to a log file."""
+
+    def __init__(self, cmd: list[str], env: dict[str, str], log: Path):
+        self.cmd, self.env, self.log = cmd, env, log
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> Proc:
+        with open(self.log, "ab") as out:
+            self.proc = subprocess.Popen(self.cmd, env=self.env, cwd=REPO, stdout=out, stderr=subprocess.STDOUT,
+                                         start_new_session=True)  # fmt: skip
+        return self
+
+    def kill9(self) -> None:
+        """SIGKILL to the process and every process of its session (a Celery worker and its pool children)."""
+        assert self.proc is not None
+        os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(10)
+
+    def tail(self, n: int = 4000) -> str:
+        return self.log.read_text(errors="replace")[-n:] if self.log.exists() else ""
+
+
+class Cluster:
+    """Redis, the API and workers sharing one environment (data folder, database, broker)."""
+
+    def __init__(self, root: Path, env: dict[str, str] | None = None):
+        self.root = root
+        self.redis = Redis(root / "redis")
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.env = {**os.environ, "NEUMATEX_DATA_DIR": str(root / "data"), "NEUMATEX_REDIS_URL": self.redis.url,
+                    "NEUMATEX_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1",
+                    **(env or {})}  # fmt: skip
+        self.api: Proc | None = None
+        self.workers: list[Proc] = []
+        self._n = 0
+
+    @property
+    def storage(self) -> Path:
+        return self.root / "data" / "storage"
+
+    def add_tenant(self, name: str, key: str) -> None:
+        code = ("from services.core.db import session_scope\nfrom services.crud import ensure_tenant\n"
+                f"with session_scope() as s: ensure_tenant(s, {name!r}, {key!r})")  # fmt: skip
+        subprocess.run([sys.executable, "-c", code], env=self.env, cwd=REPO, check=True)
+
+    def start_api(self, timeout: float = 120) -> None:
+        import httpx
+
+        self.api = Proc([sys.executable, "-m", "uvicorn", "services.main:app", "--host", "127.0.0.1", "--port",
+                         str(self.port), "--log-level", "warning"], self.env, self.root / "api.log").start()
+        wait_for(lambda: httpx.get(self.url + "/healthz", timeout=2).status_code == 200, timeout, "the API")
+
+    def restart_api(self) -> None:
+        assert self.api is not None
+        self.api.stop()
+        self.start_api()
+
+    def start_worker(self, queue: str = "cpu") -> Proc:
+        self._n += 1
+        cmd = [sys.executable, "-m", "celery", "-A", "workers.celery_app:celery_app", "worker", "-Q", queue,
+               "--concurrency", "1", "--prefetch-multiplier", "1", "-n", f"w{self._n}@%h", "--loglevel", "INFO",
+               "--without-gossip", "--without-mingle", "--without-heartbeat"]  # fmt: skip
+        w = Proc(cmd, self.env, self.root / f"worker{self._n}.log").start()
+        self.workers.append(w)
+        return w
+
+    def stop(self) -> None:
+        for w in self.workers:
+            w.stop()
+        if self.api is not None:
+            self.api.stop()
+        self.redis.stop()

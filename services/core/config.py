@@ -1,0 +1,83 @@
+"""Settings from the environment (prefix NEUMATEX_, e.g. NEUMATEX_DATABASE_URL) or a .env file.
+
+Defaults run everything embedded on one machine: SQLite and local storage under `data_dir`, Redis on localhost.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+STAGE_NAMES = ("validate", "prepare_views", "lmrm", "tto", "export")
+
+
+class Settings(BaseSettings):
+    """Every knob of the service. Sizes in bytes, times in seconds."""
+
+    model_config = SettingsConfigDict(env_prefix="NEUMATEX_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Path("data/service")
+    database_url: str = ""  # default: sqlite:///<data_dir>/jobs.db; PostgreSQL: postgresql+psycopg://...
+    redis_url: str = "redis://127.0.0.1:6379/0"
+    storage: str = "local"  # "local": a folder shared by the API and the workers (a network mount across hosts)
+    storage_root: Path | None = None  # local storage folder (default <data_dir>/storage)
+
+    # uploads
+    max_upload_bytes: int = 2 * 1024**3  # request body (the zip, or all form files together)
+    max_capture_bytes: int = 4 * 1024**3  # unpacked capture
+    max_files: int = 10_000
+    max_zip_ratio: float = 200.0
+    allowed_suffixes: tuple[str, ...] = (".json", ".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff",
+                                         ".obj", ".ply", ".glb", ".gltf", ".mtl", ".txt", ".md")  # fmt: skip
+    upload_ttl_s: float = 24 * 3600  # unfinished init/upload sessions are removed after this
+
+    # workers
+    heartbeat_s: float = 2.0
+    stale_after_s: float = 30.0  # a running job whose heartbeat is older is re-queued by the reaper
+    reaper_every_s: float = 5.0
+    redispatch_after_s: float = 30.0  # a job left undispatched (broker was down) this long is sent again
+    progress_every_s: float = 0.3  # progress events at most this often per job
+    cancel_poll_s: float = 0.25  # should_stop() reads the database at most this often
+    torch_threads: int = 0  # 0: torch's default
+    stage_time_limits: dict[str, float] = Field(default_factory=lambda: {
+        "validate": 600.0, "prepare_views": 3600.0, "lmrm": 1800.0, "tto": 6 * 3600.0, "export": 3600.0})
+    visibility_timeout_s: float = 8 * 3600.0  # must exceed the longest stage time limit
+
+    # API
+    bootstrap_tenant: str = ""  # with bootstrap_api_key: created at start-up if missing (python -m services serve)
+    bootstrap_api_key: str = ""
+    public_url: str = "http://127.0.0.1:8000"
+    cors_origins: list[str] = []
+
+    @model_validator(mode="after")
+    def _check(self) -> Settings:
+        longest = max(self.stage_time_limits.values())
+        if self.visibility_timeout_s <= longest + 60:
+            raise ValueError(f"visibility_timeout_s ({self.visibility_timeout_s:.0f} s) must exceed the longest stage "
+                             f"time limit ({longest:.0f} s) plus a minute, or a running stage is delivered twice")
+        unknown = set(self.stage_time_limits) - set(STAGE_NAMES)
+        if unknown:
+            raise ValueError(f"stage_time_limits names unknown stages {sorted(unknown)}; stages: {STAGE_NAMES}")
+        if self.storage != "local":
+            raise ValueError(f"storage {self.storage!r} is not available: only 'local' (a folder, or a shared mount) "
+                             "is implemented; S3-compatible storage is planned (docs/service.md)")
+        return self
+
+    @property
+    def db_url(self) -> str:
+        return self.database_url or f"sqlite:///{(self.data_dir / 'jobs.db').resolve()}"
+
+    @property
+    def local_root(self) -> Path:
+        return (self.storage_root or self.data_dir / "storage").resolve()
+
+    def time_limit(self, stage: str) -> float:
+        return float(self.stage_time_limits.get(stage, 3600.0))
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

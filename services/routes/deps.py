@@ -1,0 +1,35 @@
+"""Dependencies: the database session and the caller's tenant from its API key (Authorization: Bearer KEY or
+X-API-Key: KEY). A missing or unknown key is 401."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Header
+from sqlalchemy.orm import Session
+
+from services import crud
+from services.core.db import get_session
+from services.errors import ApiError
+from services.models import Tenant
+
+SessionDep = Annotated[Session, Depends(get_session)]
+
+
+def current_tenant(s: SessionDep, authorization: Annotated[str | None, Header()] = None,
+                   x_api_key: Annotated[str | None, Header()] = None) -> Tenant:
+    key = x_api_key
+    if key is None and authorization:
+        scheme, _, value = authorization.partition(" ")
+        key = value.strip() if scheme.lower() == "bearer" else None
+    challenge = {"WWW-Authenticate": "Bearer"}
+    if not key:
+        raise ApiError(401, "missing API key: send 'Authorization: Bearer <key>' or 'X-API-Key: <key>'",
+                       headers=challenge)
+    tenant = crud.tenant_for_key(s, key)
+    if tenant is None:
+        raise ApiError(401, "unknown or revoked API key", headers=challenge)
+    return tenant
+
+
+TenantDep = Annotated[Tenant, Depends(current_tenant)]

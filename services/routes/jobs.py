@@ -1,0 +1,176 @@
+"""Jobs: create (config + idempotency key), list (filters, paging), get, cancel, retry/restart, and the progress
+stream (server-sent events; each event's id is its row id, so a client reconnects with Last-Event-ID)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+import anyio
+from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.responses import StreamingResponse
+from sqlalchemy.exc import IntegrityError
+
+from services import crud
+from services.core.db import session_scope
+from services.errors import ApiError, not_found
+from services.jobconfig import build_config, default_queue
+from services.models import TERMINAL, Capture, Job, now
+from services.routes.deps import SessionDep, TenantDep
+from services.schemas import JobCreate, JobOut, JobPage, JobRetry, StageRunOut
+
+router = APIRouter(tags=["jobs"])
+
+
+def job_out(s: SessionDep, job: Job, runs: bool = True) -> JobOut:
+    out = JobOut.model_validate(job)
+    if runs:
+        out.stage_runs = [StageRunOut.model_validate(r) for r in crud.stage_runs(s, job.id)]
+    if job.state == "running" and job.started_at is not None and job.progress > 0.02:
+        elapsed = (now() - job.started_at).total_seconds()
+        out.eta_s = max(0.0, elapsed * (1 - job.progress) / job.progress)
+    return out
+
+
+def _get(s: SessionDep, tenant_id: str, job_id: str) -> Job:
+    job = crud.job_of_tenant(s, tenant_id, job_id)
+    if job is None:
+        raise not_found("job", job_id)
+    return job
+
+
+def _send(job_id: str, stage: str, attempt: int, queue: str) -> None:
+    from workers.celery_app import dispatch
+
+    if dispatch(job_id, stage, attempt, queue):
+        with session_scope() as s:
+            crud.mark_dispatched(s, job_id, attempt)
+
+
+@router.post("/jobs", status_code=201, response_model=JobOut, responses={200: {"description": "idempotent replay"}})
+def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: TenantDep,
+               idempotency_key: Annotated[str | None, Header(max_length=200)] = None) -> JobOut:
+    key = body.idempotency_key or idempotency_key
+    payload = body.model_dump(exclude={"idempotency_key"})
+    digest = crud.request_hash(payload)
+    if key:
+        found = crud.find_idempotent(s, tenant.id, key)
+        if found is not None:
+            if found.request_hash != digest:
+                raise ApiError(409, f"idempotency key {key!r} was used for a different request")
+            response.status_code = 200
+            return job_out(s, found)
+    cap = s.get(Capture, body.capture_id)
+    if cap is None or cap.tenant_id != tenant.id:
+        raise not_found("capture", body.capture_id)
+    try:
+        build_config(body.preset, body.config)
+    except (ValueError, TypeError) as exc:
+        raise ApiError(422, f"bad job config: {exc}") from None
+    job = Job(tenant_id=tenant.id, capture_id=cap.id, preset=body.preset, config=body.config,
+              queue=body.queue or default_queue(body.preset), idempotency_key=key, request_hash=digest)  # fmt: skip
+    s.add(job)
+    try:
+        s.flush()
+    except IntegrityError:  # the same key raced in from another request
+        s.rollback()
+        found = crud.find_idempotent(s, tenant.id, key or "")
+        if found is None or found.request_hash != digest:
+            raise ApiError(409, f"idempotency key {key!r} was used for a different request") from None
+        response.status_code = 200
+        return job_out(s, found)
+    crud.add_event(s, job.id, "state", state="queued", stage=job.stage, progress=0.0)
+    s.commit()
+    _send(job.id, "validate", job.attempt, job.queue)
+    s.refresh(job)
+    return job_out(s, job)
+
+
+@router.get("/jobs", response_model=JobPage)
+def list_jobs(s: SessionDep, tenant: TenantDep, state: str | None = None, capture_id: str | None = None,
+              stage: str | None = None, limit: Annotated[int, Query(ge=1, le=500)] = 50,
+              offset: Annotated[int, Query(ge=0)] = 0) -> JobPage:
+    rows, total = crud.list_jobs(s, tenant.id, state, capture_id, stage, limit, offset)
+    nxt = offset + len(rows) if offset + len(rows) < total else None
+    return JobPage(items=[job_out(s, j, runs=False) for j in rows], total=total, limit=limit, offset=offset,
+                   next_offset=nxt)  # fmt: skip
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut)
+def get_job(job_id: str, s: SessionDep, tenant: TenantDep) -> JobOut:
+    return job_out(s, _get(s, tenant.id, job_id))
+
+
+@router.post("/jobs/{job_id}/cancel", response_model=JobOut)
+def cancel_job(job_id: str, s: SessionDep, tenant: TenantDep) -> JobOut:
+    job = _get(s, tenant.id, job_id)
+    if not crud.cancel(s, job):
+        raise ApiError(409, f"job {job_id} is {job.state}; only queued or running jobs can be canceled")
+    s.commit()
+    s.refresh(job)
+    return job_out(s, job)
+
+
+@router.post("/jobs/{job_id}/retry", response_model=JobOut,
+             summary="Run a failed or canceled job again from its first unfinished stage (or from_stage)")
+def retry_job(job_id: str, s: SessionDep, tenant: TenantDep, body: JobRetry | None = None) -> JobOut:
+    job = _get(s, tenant.id, job_id)
+    from_stage = body.from_stage if body else None
+    if job.state not in ("failed", "canceled") and not (job.state == "completed" and from_stage):
+        raise ApiError(409, f"job {job_id} is {job.state}; retry needs a failed or canceled job (or a completed "
+                       "one with from_stage)")
+    if from_stage is not None:
+        from services.core.config import STAGE_NAMES
+        from services.storage import get_storage
+
+        storage = get_storage()
+        for st in STAGE_NAMES[STAGE_NAMES.index(from_stage):]:
+            storage.delete(f"work/{job.id}/{st}")
+    got = crud.requeue(s, job, f"retry requested from {from_stage or 'the first unfinished stage'}", from_stage)
+    if got is None:
+        raise ApiError(409, f"job {job_id} changed meanwhile; try again")
+    s.commit()
+    _send(job.id, got[1], got[0], job.queue)
+    s.refresh(job)
+    return job_out(s, job)
+
+
+@router.get("/jobs/{job_id}/events", summary="Progress stream (text/event-stream)",
+            response_class=StreamingResponse, responses={200: {"content": {"text/event-stream": {}}}})
+async def job_events(job_id: str, request: Request, tenant: TenantDep,
+                     last_event_id: Annotated[str | None, Header()] = None) -> StreamingResponse:
+    with session_scope() as s:
+        _get(s, tenant.id, job_id)
+    start = int(last_event_id) if last_event_id and last_event_id.isdigit() else 0
+
+    def poll(after: int) -> tuple[list[tuple[int, str, str]], str]:
+        with session_scope() as s:
+            rows = crud.events_after(s, job_id, after)
+            job = s.get(Job, job_id)
+            return ([(e.id, e.kind, json.dumps({**e.data, "kind": e.kind, "at": e.created_at.isoformat()}))
+                     for e in rows], job.state if job else "canceled")  # fmt: skip
+
+    async def stream() -> AsyncIterator[str]:
+        after, idle = start, 0.0
+        yield "retry: 1000\n\n"
+        while not await request.is_disconnected():
+            rows, state = await anyio.to_thread.run_sync(poll, after)
+            for ident, kind, data in rows:
+                after = ident
+                yield f"id: {ident}\nevent: {kind}\ndata: {data}\n\n"
+            if not rows and state in TERMINAL:
+                yield f"event: end\ndata: {json.dumps({'state': state})}\n\n"
+                return
+            if rows:
+                idle = 0.0
+            else:
+                idle += 0.2
+                if idle >= 15:
+                    idle = 0.0
+                    yield ": keep-alive\n\n"
+                await asyncio.sleep(0.2)
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

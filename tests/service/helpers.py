@@ -1,0 +1,103 @@
+"""Helpers of the service tests: the tests' cluster (services.cluster with fast heartbeats and small limits),
+capture zips, upload/submit/wait helpers and an SSE reader."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from services.cluster import FAST, REPO, Cluster, wait_for
+
+EXAMPLE = REPO / "examples" / "teapot"
+KEY_A = "nmx_test_tenant_a_0123456789abcdefghij"
+KEY_B = "nmx_test_tenant_b_0123456789abcdefghij"
+# The smallest real configuration: the tiny preset from a random triplane (no LMRM checkpoint needed).
+TINY = {"init": "random", "device": "cpu"}
+
+
+class Service(Cluster):
+    """The tests' cluster: fast heartbeats and reaping, small upload limits."""
+
+    def __init__(self, root: Path):
+        super().__init__(root, {**FAST, "NEUMATEX_MAX_UPLOAD_BYTES": str(8 * 1024**2),
+                                "NEUMATEX_MAX_CAPTURE_BYTES": str(32 * 1024**2), "NEUMATEX_MAX_FILES": "200"})
+
+    def client(self, key: str = KEY_A) -> httpx.Client:
+        return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {key}"}, timeout=60)
+
+
+def capture_zip(source: Path = EXAMPLE, prefix: str = "teapot/", skip: tuple[str, ...] = ("photos", "gbuffers"),
+                extra: dict[str, bytes] | None = None, drop: tuple[str, ...] = ()) -> bytes:
+    """A zip of a capture folder (the example teapot by default, without its photos/ and gbuffers/ folders)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for p in sorted(source.rglob("*")):
+            rel = p.relative_to(source).as_posix()
+            if p.is_file() and rel.split("/")[0] not in skip and rel not in drop:
+                z.write(p, prefix + rel)
+        for name, data in (extra or {}).items():
+            z.writestr(prefix + name, data)
+    return buf.getvalue()
+
+
+def upload(client: httpx.Client, data: bytes, name: str = "teapot") -> httpx.Response:
+    return client.post("/v1/captures", params={"name": name}, content=data,
+                       headers={"Content-Type": "application/zip"})  # fmt: skip
+
+
+def submit(client: httpx.Client, capture_id: str, tto: dict[str, Any] | None = None, **kw: Any) -> dict[str, Any]:
+    config = {**TINY, "tto": tto or {}}
+    r = client.post("/v1/jobs", json={"capture_id": capture_id, "preset": "tiny", "config": config, **kw})
+    assert r.status_code in (200, 201), r.text
+    return dict(r.json())
+
+
+def job(client: httpx.Client, job_id: str) -> dict[str, Any]:
+    r = client.get(f"/v1/jobs/{job_id}")
+    assert r.status_code == 200, r.text
+    return dict(r.json())
+
+
+def wait_state(client: httpx.Client, job_id: str, states: tuple[str, ...], timeout: float,
+               service: Cluster | None = None) -> dict[str, Any]:
+    try:
+        return dict(wait_for(lambda: (j := job(client, job_id))["state"] in states and j, timeout,
+                             f"job {job_id} to reach {states}", every=0.25))  # fmt: skip
+    except AssertionError:
+        if service is not None:
+            for w in service.workers:
+                print(f"--- {w.log.name}\n{w.tail()}")
+            print(json.dumps(job(client, job_id), indent=1))
+        raise
+
+
+def tto_step(client: httpx.Client, job_id: str) -> int:
+    j = job(client, job_id)
+    if j["stage"] != "tto" or j["state"] != "running":
+        return 0
+    return round(j["stage_fraction"] * 1000)  # fraction of the TTO schedule, in thousandths
+
+
+def sse_events(service: Service, job_id: str, key: str = KEY_A, timeout: float = 240) -> list[dict[str, Any]]:
+    """Every event of the job's SSE stream until the server ends it (terminal state)."""
+    events: list[dict[str, Any]] = []
+    with httpx.stream("GET", f"{service.url}/v1/jobs/{job_id}/events", headers={"Authorization": f"Bearer {key}"},
+                      timeout=httpx.Timeout(timeout, read=60)) as r:  # fmt: skip
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
+        kind, ident = None, None
+        for line in r.iter_lines():
+            if line.startswith("event: "):
+                kind = line[7:]
+            elif line.startswith("id: "):
+                ident = int(line[4:])
+            elif line.startswith("data: "):
+                events.append({"event": kind, "id": ident, **json.loads(line[6:])})
+                if kind == "end":
+                    break
+                kind, ident = None, None
+    return events

@@ -1,0 +1,239 @@
+"""LMRM: shapes and the inference interface, beta-NLL gradients, training determinism and resume, DDP under
+torchrun (one CPU process, gloo), the shipped checkpoint and its basis check, and the shipped model beating the
+mean-material baseline on a held-out synthetic object.
+
+Training data here: 3 tiny synthetic objects (24 px, 2 spp, direct light) and the 'test' model preset, so the
+file runs in about two minutes on one core.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import ENVMAPS, MESHES, REPO
+from safetensors.torch import load_file
+
+from neumatex_core.eval.metrics import psnr
+from neumatex_core.fields import MaterialDecoder, Triplane
+from neumatex_core.geometry.mesh import load_mesh
+from neumatex_core.lmrm import LMRM, LMRMConfig, LMRMError, LMRMNet, LMRMPrediction, load_lmrm, load_lmrm_from
+from neumatex_core.lmrm.data import Augment, LMRMDataset, load_synth_object
+from neumatex_core.lmrm.inference import DEFAULT_RECORD, DEFAULT_WEIGHTS
+from neumatex_core.lmrm.losses import beta_nll
+from neumatex_core.lmrm.model import IN_CHANNELS, lift_to_planes
+from neumatex_core.lmrm.train import TrainLMRMConfig, train_lmrm
+from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.synth import SynthConfig, generate
+
+TINY = dict(resolution=24, spp=2, max_bounces=1, photos=0, relight_maps=0, workers=1, progress=False,
+            meshes=str(MESHES), envmaps=str(ENVMAPS))  # fmt: skip
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("lmrm") / "train"
+    result = generate(SynthConfig(out=str(out), n=3, split="train", seed=321, **TINY))  # type: ignore[arg-type]
+    assert result.complete
+    return out
+
+
+def tiny_train(data: Path, out: Path, **kw) -> TrainLMRMConfig:
+    base = TrainLMRMConfig(data=str(data), cache=str(data.parent / "cache"), out=str(out), preset="test", steps=4,
+                           pbr_steps=2, batch_size=2, points=256, warmup=1, val_modulo=0, checkpoint_every=1,
+                           threads=1, device="cpu")  # fmt: skip
+    return replace(base, **kw)
+
+
+# -- model and interface -----------------------------------------------------------------------------------
+def test_lift_to_planes_means_points_into_their_texels():
+    pts = torch.tensor([[-0.9, -0.9, -0.9], [-0.8, -0.95, 0.5], [0.9, 0.9, 0.9]])
+    feats = torch.tensor([[1.0], [3.0], [5.0]])
+    planes = lift_to_planes(feats, pts, 4)  # [3, 2F + 1, R, R]
+    assert planes.shape == (3, 3, 4, 4)
+    # XY plane: points 0 and 1 share texel (row 0, col 0): mean 2, mean square 5, count 2.
+    assert planes[0, 0, 0, 0] == pytest.approx(2.0) and planes[0, 1, 0, 0] == pytest.approx(5.0)
+    assert planes[0, 2, 0, 0] == pytest.approx(torch.log1p(torch.tensor(2.0)).item() / 5)
+    assert planes[0, 0, 3, 3] == pytest.approx(5.0)
+    assert planes[0, :, 1:3, 1:3].abs().sum() == 0  # nothing lands in the middle
+
+
+def test_predict_shapes_and_interface(tiny_data):
+    cfg = LMRMConfig.preset("test")
+    torch.manual_seed(0)
+    lmrm = LMRM(LMRMNet(cfg), {"basis_id": "x"})
+    obj = load_synth_object(sorted(tiny_data.glob("train-*"))[0])
+    mesh = load_mesh(obj.folder / "mesh.obj")
+    pred = lmrm.predict(obj.rgb, obj.cameras, mesh, obj.envmap)
+    assert isinstance(pred, LMRMPrediction) and isinstance(pred.material_decoder, MaterialDecoder)
+    assert isinstance(pred.triplane, Triplane)
+    assert pred.triplane.planes.shape == (3, cfg.triplane_channels, cfg.plane_resolution, cfg.plane_resolution)
+    pts = obj.position[obj.mask][:100]
+    rho, lat, log_var = pred.gbuffers(pts)
+    assert rho.shape == (100, 3) and lat.shape == (100, 6) and log_var.shape == (100, 9)
+    assert float(rho.detach().min()) >= 0 and float(rho.detach().max()) <= 1 and float(lat.detach().abs().max()) <= 1
+    again_rho, again_lat = pred.material_decoder(pred.triplane.features(pts))
+    assert torch.equal(again_rho, rho) and torch.equal(again_lat, lat)
+    base, rough, metal = pred.pbr(pts)
+    assert base.shape == (100, 3) and rough.shape == (100,) and metal.shape == (100,)
+    # The triplane is optimisable (TTO), the decoders are frozen.
+    assert pred.triplane.planes.requires_grad
+    assert not any(p.requires_grad for p in pred.material_decoder.parameters())
+    # Views of another size are resampled; without lighting the prediction still works.
+    small = torch.nn.functional.interpolate(obj.rgb.permute(0, 3, 1, 2), size=(12, 12), mode="area")
+    pred2 = lmrm.predict(small.permute(0, 2, 3, 1), [c.resized(12, 12) for c in obj.cameras], mesh, None)
+    assert pred2.triplane.planes.shape == pred.triplane.planes.shape
+    inputs = lmrm.prepare(obj.rgb, obj.cameras, mesh, None)
+    assert inputs.inputs.shape == (23, IN_CHANNELS, cfg.view_resolution, cfg.view_resolution)
+    with pytest.raises(LMRMError, match="cameras"):
+        lmrm.predict(obj.rgb, obj.cameras[:5], mesh)
+    with pytest.raises(LMRMError, match="unit sphere"):
+        lmrm.predict(obj.rgb, obj.cameras, replace(mesh, vertices=mesh.vertices * 3))
+
+
+def test_pbr_gbuffer_channels_are_read_by_name(tmp_path):
+    """OpenEXR sorts channels by name; the PBR G-buffer must come back as base rgb, roughness, metallic."""
+    from neumatex_core.imageio import write_image
+    from neumatex_core.lmrm.data import read_channels
+    from neumatex_core.synth.writer import GBUFFER_CHANNELS
+
+    names = GBUFFER_CHANNELS["pbr"]
+    pixels = np.broadcast_to(np.arange(1, 6, dtype=np.float32), (2, 3, 5)).copy()
+    write_image(tmp_path / "pbr.exr", pixels, names)
+    assert read_channels(tmp_path / "pbr.exr", names)[0, 0].tolist() == [1, 2, 3, 4, 5]
+    with pytest.raises(ValueError, match="missing"):
+        read_channels(tmp_path / "pbr.exr", ("R", "G", "B"))
+
+
+# -- losses ------------------------------------------------------------------------------------------------
+def test_beta_nll_gradients():
+    torch.manual_seed(0)
+    mean = torch.randn(64, 9, requires_grad=True)
+    target = torch.randn(64, 9)
+    log_var = torch.randn(64, 9, requires_grad=True)
+    per_channel = beta_nll(mean, log_var, target, beta=0.5)
+    assert per_channel.shape == (9,)
+    per_channel.sum().backward()
+    # Stop-gradient on the mean: the NLL never moves the material prediction.
+    assert mean.grad is None or float(mean.grad.abs().max()) == 0.0
+    # d/dlv of var^beta (detached) * (lv + e^2 / var) / 2, averaged over the 64 points.
+    var = log_var.detach().exp()
+    e2 = (target - mean.detach()) ** 2
+    expected = var**0.5 * 0.5 * (1 - e2 / var) / 64
+    assert torch.allclose(log_var.grad, expected, rtol=1e-5, atol=1e-8)
+    # Zero gradient exactly at the squared error; pushes towards it from either side.
+    lv = torch.log(e2).clone().requires_grad_(True)
+    beta_nll(mean.detach(), lv, target).sum().backward()
+    assert float(lv.grad.abs().max()) < 1e-6
+    for offset, sign in ((1.0, 1.0), (-1.0, -1.0)):
+        lv2 = (torch.log(e2[:4, :1]) + offset).requires_grad_(True)
+        beta_nll(mean.detach()[:4, :1], lv2, target[:4, :1]).sum().backward()
+        assert bool((torch.sign(lv2.grad) == sign).all())
+    # beta = 0 is the plain Gaussian NLL.
+    lv3 = torch.zeros(5, 1, requires_grad=True)
+    beta_nll(torch.zeros(5, 1), lv3, torch.full((5, 1), 2.0), beta=0.0).sum().backward()
+    assert torch.allclose(lv3.grad, torch.full((5, 1), 0.5 * (1 - 4.0) / 5))
+
+
+# -- training ----------------------------------------------------------------------------------------------
+def test_training_is_deterministic_and_resumes_exactly(tiny_data, tmp_path):
+    full = train_lmrm(tiny_train(tiny_data, tmp_path / "full"))
+    assert full.finished and full.steps_done == 4
+    cut = train_lmrm(tiny_train(tiny_data, tmp_path / "cut", max_minutes=1e-9))
+    assert not cut.finished and cut.steps_done == 1
+    resumed = train_lmrm(tiny_train(tiny_data, tmp_path / "cut"))
+    assert resumed.finished and resumed.steps_done == 4
+    a = load_file(str(tmp_path / "full" / "lmrm.safetensors"))
+    b = load_file(str(tmp_path / "cut" / "lmrm.safetensors"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    curves = json.loads((tmp_path / "full" / "curves.json").read_text())
+    assert [r["stage"] for r in curves["train"]] == [1, 1, 2, 2]
+    assert (tmp_path / "full" / "curves.png").stat().st_size > 1000
+    rec = json.loads((tmp_path / "full" / "lmrm.json").read_text())
+    assert rec["basis_id"] == load_basis().basis_id and len(rec["data"]["manifest_sha256"]) == 64
+    assert torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)["step"] == 4
+    # Augmented samples differ from the plain ones but stay consistent in size.
+    ds = LMRMDataset([tiny_data], tiny_data.parent / "cache")
+    s1 = ds.sample(0, torch.Generator().manual_seed(1), Augment(), 128)
+    s2 = ds.sample(0, torch.Generator().manual_seed(1), Augment.none(), 128)
+    assert s1.points.shape == s2.points.shape == (128, 3)
+    assert s1.inputs.inputs.shape[0] >= 16 and s2.inputs.inputs.shape[0] == 23
+
+
+def test_torchrun_one_process_matches_plain_training(tiny_data, tmp_path):
+    plain = tiny_train(tiny_data, tmp_path / "plain", steps=2, pbr_steps=1)
+    train_lmrm(plain)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MASTER_ADDR": "127.0.0.1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=1", "--master_port=29517",
+           "-m", "neumatex_core.cli", "train-lmrm", "--data", str(tiny_data),
+           "--cache", str(tiny_data.parent / "cache"), "--out", str(tmp_path / "ddp"), "--preset", "test",
+           "--steps", "2", "--pbr-steps", "1", "--batch-size", "2",
+           "--points", "256", "--warmup", "1", "--val-modulo", "0", "--device", "cpu"]  # fmt: skip
+    run = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    rec = json.loads((tmp_path / "ddp" / "lmrm.json").read_text())
+    assert rec["training"]["world_size"] == 1 and rec["metrics"]["steps"] == 2
+    a = load_file(str(tmp_path / "plain" / "lmrm.safetensors"))
+    b = load_file(str(tmp_path / "ddp" / "lmrm.safetensors"))
+    assert all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
+
+
+# -- the shipped checkpoint ----------------------------------------------------------------------------------
+def test_shipped_checkpoint_loads_and_checks_the_basis(tmp_path):
+    assert DEFAULT_WEIGHTS.stat().st_size < 20 * 2**20
+    lmrm = load_lmrm()
+    rec = lmrm.record
+    assert rec["basis_id"] == load_basis().basis_id
+    assert rec["config"] == LMRMConfig().to_dict()  # the shipped model is the default CPU configuration
+    assert rec["data"]["objects"] >= 100 and len(rec["data"]["manifest_sha256"]) == 64
+    other = copy.deepcopy(load_basis())
+    other.basis_id = "nmx-basis-v0-000000000000"
+    with pytest.raises(LMRMError, match="trained for neural basis"):
+        load_lmrm_from(DEFAULT_WEIGHTS, DEFAULT_RECORD, basis=other)
+    weights, record = tmp_path / "w.safetensors", tmp_path / "r.json"
+    shutil.copy(DEFAULT_WEIGHTS, weights)
+    record.write_text(json.dumps({**rec, "basis_id": "nmx-basis-v9-ffffffffffff"}))
+    with pytest.raises(LMRMError, match="nmx-basis-v9"):
+        load_lmrm_from(weights, record)
+    record.write_text(json.dumps(rec))
+    weights.write_bytes(weights.read_bytes()[:-8] + b"\0" * 8)
+    with pytest.raises(LMRMError, match="SHA-256"):
+        load_lmrm_from(weights, record)
+    with pytest.raises(LMRMError, match="missing"):
+        load_lmrm_from(tmp_path / "none.safetensors", record)
+
+
+def test_shipped_model_beats_the_mean_material(tmp_path):
+    out = tmp_path / "held-out"
+    cfg = SynthConfig(out=str(out), n=1, split="test", seed=77, **{**TINY, "resolution": 64, "spp": 8,
+                                                                   "max_bounces": 3})  # type: ignore[arg-type]
+    generate(cfg)
+    obj = load_synth_object(out / "test-000000")
+    lmrm = load_lmrm()
+    pred = lmrm.predict(obj.rgb, obj.cameras, load_mesh(obj.folder / "mesh.obj"), obj.envmap)
+    t = obj.targets[obj.mask]
+    with torch.no_grad():
+        rho, lat, _ = pred.gbuffers(obj.position[obj.mask])
+    mean = torch.tensor(lmrm.record["metrics"]["training_mean"]).expand_as(t)
+    ours_rho, mean_rho = psnr(rho[None], t[None, :, :3]), psnr(mean[None, :, :3], t[None, :, :3])
+    ours_lat = psnr((lat[None] + 1) / 2, (t[None, :, 3:9] + 1) / 2)
+    mean_lat = psnr((mean[None, :, 3:9] + 1) / 2, (t[None, :, 3:9] + 1) / 2)
+    assert ours_rho > mean_rho + 1.0, (ours_rho, mean_rho)
+    assert ours_lat > mean_lat + 0.5, (ours_lat, mean_lat)

@@ -1,0 +1,193 @@
+"""The extraction pipeline: idempotent stages, resume after an interruption without re-running finished stages,
+clear errors for bad captures, and `neumatex extract` end to end (tiny preset on the bundled example capture)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from tto_fixtures import EXAMPLE
+
+from neumatex_core.assets import read_asset
+from neumatex_core.cli import main
+from neumatex_core.lmrm import LMRMConfig, LMRMNet, save_lmrm
+from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.pipeline import (
+    STAGES,
+    Cancelled,
+    ExtractConfig,
+    PipelineError,
+    StageProgress,
+    extract,
+    run_stage,
+    stage_dir,
+)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def tiny_lmrm(tmp_path_factory) -> Path:
+    """A small, untrained LMRM checkpoint (the pipeline path of a trained one without depending on the shipped)."""
+    folder = tmp_path_factory.mktemp("lmrm")
+    torch.manual_seed(0)
+    net = LMRMNet(LMRMConfig(view_resolution=32, view_channels=8, view_layers=1, feature_channels=8,
+                             plane_resolution=16, plane_channels=8, triplane_channels=8, decoder_hidden=16))
+    save_lmrm(net, folder / "lmrm.safetensors", folder / "lmrm.json", load_basis(), {"note": "test"})
+    return folder / "lmrm.safetensors"
+
+
+def config(lmrm: Path, **kw) -> ExtractConfig:
+    return ExtractConfig.preset("tiny", lmrm_weights=str(lmrm), device="cpu", **kw)
+
+
+def done_times(work: Path) -> dict[str, int]:
+    return {s: (stage_dir(work, s) / "done.json").stat().st_mtime_ns for s in STAGES
+            if (stage_dir(work, s) / "done.json").is_file()}  # fmt: skip
+
+
+def test_stages_are_idempotent_and_resume_after_an_interruption(tmp_path, tiny_lmrm):
+    work, out = tmp_path / "work", tmp_path / "asset"
+    cfg = config(tiny_lmrm)
+    assert ExtractConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg  # what a task message carries
+    metrics = run_stage("validate", EXAMPLE, work, cfg)
+    assert metrics["frames"] == 23 and metrics["faces"] > 0
+    before = done_times(work)
+    assert run_stage("validate", EXAMPLE, work, cfg) == metrics  # stored metrics, not re-run
+    assert done_times(work) == before
+    # A later stage refuses to run before its inputs exist.
+    with pytest.raises(PipelineError, match="prepare_views"):
+        run_stage("lmrm", EXAMPLE, work, cfg)
+    # Interrupt the TTO after 5 steps.
+    seen: list[StageProgress] = []
+
+    def progress(p: StageProgress) -> None:
+        seen.append(p)
+
+    def stop() -> bool:
+        return any(p.stage == "tto" and p.metrics.get("step", 0) >= 5 for p in seen)
+
+    with pytest.raises(Cancelled):
+        extract(EXAMPLE, out, cfg, progress, stop, work)
+    assert set(done_times(work)) == {"validate", "prepare_views", "lmrm"}
+    assert (stage_dir(work, "tto") / "checkpoint.pt").is_file() and not out.exists()
+    assert all(0.0 <= p.fraction <= 1.0 for p in seen)
+    finished = done_times(work)
+    again: list[StageProgress] = []
+    path = extract(EXAMPLE, out, cfg, again.append, None, work)
+    assert path == out
+    assert {s: done_times(work)[s] for s in finished} == finished  # finished stages were not re-run
+    assert {p.stage for p in again} == {"tto", "export"}
+    steps = [int(p.metrics["step"]) for p in again if p.stage == "tto" and "step" in p.metrics]
+    assert steps[0] == 6 and steps[-1] == cfg.tto.steps  # resumed after step 5, not from the start
+    history = json.loads((stage_dir(work, "tto") / "history.json").read_text())
+    assert [int(r["step"]) for r in history] == list(range(1, cfg.tto.steps + 1))
+    lmrm = json.loads((stage_dir(work, "lmrm") / "prediction.json").read_text())
+    assert lmrm["trained"] and lmrm["source"] == "lmrm"
+    asset = read_asset(out)
+    assert asset.field_kind == "triplane" and set(asset.decoders) == {"material", "uncertainty", "pbr"}
+    assert asset.metrics["tto_steps"] == cfg.tto.steps and "psnr_photos" in asset.metrics
+    assert (out / "report" / "index.html").is_file() and (out / "report" / "curves.png").is_file()
+
+
+def test_bad_capture_raises_a_pipeline_error_naming_the_file(tmp_path, tiny_lmrm):
+    capture = tmp_path / "capture"
+    shutil.copytree(EXAMPLE, capture, ignore=shutil.ignore_patterns("photos", "gbuffers"))
+    (capture / "images" / "003.png").write_bytes(b"not a png")
+    with pytest.raises(PipelineError, match=r"images/003\.png"):
+        run_stage("validate", capture, tmp_path / "work", config(tiny_lmrm))
+    assert not (stage_dir(tmp_path / "work", "validate") / "done.json").exists()
+    with pytest.raises(PipelineError, match="not found"):
+        run_stage("validate", tmp_path / "missing", tmp_path / "work2", config(tiny_lmrm))
+
+
+def test_lmrm_init_without_a_checkpoint_fails_clearly(tmp_path):
+    cfg = ExtractConfig.preset("tiny", lmrm_weights=str(tmp_path / "none.safetensors"), init="lmrm", device="cpu")
+    work = tmp_path / "work"
+    for stage in ("validate", "prepare_views"):
+        run_stage(stage, EXAMPLE / "photos", work, cfg)
+    with pytest.raises(PipelineError, match="init='random'"):
+        run_stage("lmrm", EXAMPLE / "photos", work, cfg)
+
+
+def test_cli_extract_end_to_end_from_photos(tmp_path, capsys):
+    out = tmp_path / "asset"
+    # The photos/ capture has 6 photos at random poses: the preset views are blended (lumigraph).
+    # With the progress bars (stderr).
+    code = main(["extract", str(EXAMPLE / "photos"), "--out", str(out), "--preset", "tiny", "--init", "random",
+                 "--device", "cpu"])  # fmt: skip
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "wrote" in captured.out and "tto" in captured.err and "export" in captured.err
+    asset = read_asset(out)
+    assert asset.mesh.num_faces > 0 and asset.material_texture.shape[-1] == 9
+    views = json.loads((tmp_path / ".asset.work" / "prepare_views" / "views.json").read_text())
+    assert views["source"].startswith("blended from 6 photos")
+    assert (out / "report" / "index.html").read_text().count("<img") >= 3
+    # Rerunning is a no-op resume; a bad capture is an error message and exit code 2, not a traceback.
+    assert main(["extract", str(EXAMPLE / "photos"), "--out", str(out), "--preset", "tiny", "--init", "random",
+                 "--no-progress"]) == 0  # fmt: skip
+    assert main(["extract", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x"), "--preset", "tiny",
+                 "--no-progress"]) == 2  # fmt: skip
+    assert "nowhere" in capsys.readouterr().err
+
+
+def test_evaluate_variant_scores_a_synthetic_object(tmp_path, tiny_lmrm):
+    from neumatex_core.eval import gbuffer_psnr, ground_truth
+    from neumatex_core.eval.harness import evaluate_variant
+    from neumatex_core.pipeline import load_prediction
+
+    cfg = config(tiny_lmrm)
+    work = tmp_path / "work"
+    base = evaluate_variant(EXAMPLE, work, "t3a_no_tto", cfg, render_views=(0,), render_spp=2)
+    pred, _ = load_prediction(work)
+    direct = gbuffer_psnr(lambda p: torch.cat(pred.material_decoder(pred.triplane.features(p)), -1),
+                          ground_truth(EXAMPLE))  # fmt: skip
+    assert base["psnr_basecolor"] == pytest.approx(direct["psnr_basecolor"], abs=1e-6)
+    assert base["tto_cpu_minutes"] < 0.01
+    ours = evaluate_variant(EXAMPLE, work, "ours", cfg, render_views=(0,), render_spp=2)
+    assert set(ours) == {"psnr_basecolor", "psnr_latents", "psnr_pathtrace", "tto_minutes", "tto_cpu_minutes"}
+    assert all(math.isfinite(v) for v in ours.values()) and ours["tto_minutes"] > 0
+    assert ours["psnr_basecolor"] != base["psnr_basecolor"]  # the TTO moved the material
+    with pytest.raises(ValueError, match="unknown variant"):
+        evaluate_variant(EXAMPLE, work, "nope", cfg)
+
+
+def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, tiny_lmrm):
+    from neumatex_core.eval.suite import EvalConfig, distinct_variants, run_eval
+
+    data = tmp_path / "split"
+    shutil.copytree(EXAMPLE, data / "test-000000")
+    doc = tmp_path / "docs" / "results.md"
+    cfg = EvalConfig(data=str(data), out=str(tmp_path / "eval"), tables="table1,table3", preset="tiny",
+                     render_views=1, relight_views="", device="cpu", lmrm_weights=str(tiny_lmrm), doc=str(doc),
+                     figures=1, progress=False)  # fmt: skip
+    canon = distinct_variants(["table1", "table3"])
+    assert canon["t3c_unc"] == "ours" and canon["ours"] == "ours"  # identical settings run once
+    seen: list[tuple[int, int]] = []
+    result = run_eval(cfg, lambda done, total, last: seen.append((done, total)))
+    assert result["complete"] and result["objects"] == 1
+    runs = sorted(p.stem for p in (tmp_path / "eval" / "results" / "test-000000").glob("*.json"))
+    assert runs == sorted({"pbr", "ours", "t3a_no_tto", "t3b_no_reg", "t3d_oracle"})
+    assert seen[-1] == (5, 5) and [d for d, _ in seen] == sorted(d for d, _ in seen)
+    page = doc.read_text()
+    assert "Table 1" in page and "Table 3" in page and "oracle" in page and "holds" in page
+    assert (doc.parent / "results" / "grid.png").is_file()
+    ours = json.loads((tmp_path / "eval" / "results" / "test-000000" / "ours.json").read_text())
+    assert math.isfinite(ours["psnr_pathtrace"]) and ours["psnr_basecolor"] > 0
+    # resume: nothing is recomputed
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")}
+    run_eval(cfg)
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")} == stamps
+    with pytest.raises(ValueError, match="unknown table"):
+        run_eval(EvalConfig(data=str(data), tables="table9", progress=False))

@@ -1,0 +1,218 @@
+"""Test-time optimisation: the photometric loss falls and the G-buffers move toward ground truth; the anchor's
+weights are exp(-log_var); only the triplane moves; a stopped and resumed TTO equals an uninterrupted one.
+
+All on the bundled example capture (examples/teapot: 23 views at 64 px of a synthetic object whose ground-truth
+G-buffers are known), one torch thread, a few seconds per test.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+from tto_fixtures import Example, gbuffer_mse, gt_prediction, load_example, random_prediction
+
+from neumatex_core.eval import GroundTruth, gbuffer_psnr, truth_lookup
+from neumatex_core.fields import Triplane
+from neumatex_core.lmrm.inference import LMRMPrediction
+from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
+from neumatex_core.render.scene import Scene
+from neumatex_core.tto import Anchor, TTOConfig, build_problem, optimise, oracle_weights, uncertainty_weights
+from neumatex_core.tto.loss import regulariser
+from neumatex_core.tto.optimise import step_generator
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def example() -> Example:
+    return load_example()
+
+
+@pytest.fixture(scope="module")
+def truth_prediction(example) -> LMRMPrediction:
+    return gt_prediction(example)
+
+
+def perturbed(pred: LMRMPrediction, std: float, seed: int = 1) -> LMRMPrediction:
+    g = torch.Generator().manual_seed(seed)
+    planes = pred.triplane.planes + torch.randn(pred.triplane.planes.shape, generator=g) * std
+    return LMRMPrediction(Triplane.from_planes(planes), pred.material_decoder, pred.uncertainty_decoder,
+                          pred.pbr_decoder)  # fmt: skip
+
+
+def per_pixel_error(example: Example, field, seed: int = 12345, pixels: int = 2048, spp: int = 8) -> torch.Tensor:
+    """Squared tonemapped error [pixels] of `field` on a fixed batch (same pixels, same random numbers)."""
+    gen = torch.Generator().manual_seed(seed)
+    batch = example.photos.batch(pixels, spp, gen)
+    scene = Scene(example.mesh if example.mesh.vertex_normals is not None else example.mesh.with_smooth_normals(),
+                  example.envmap, field)  # fmt: skip
+    with torch.no_grad():
+        radiance = PathTracer(PathTracerConfig(max_bounces=3, spp=spp)).render_rays(
+            scene, batch.origins, batch.directions, torch.Generator().manual_seed(seed + 1))
+    shown = example.capture.tonemap.apply(radiance.reshape(-1, spp, 3).mean(1))
+    return ((shown - batch.target) ** 2).mean(-1)
+
+
+def test_tto_lowers_photometric_loss_and_moves_gbuffers_toward_truth(example, truth_prediction):
+    start = perturbed(truth_prediction, 0.3)
+    cfg = TTOConfig.preset("tiny", steps=40, pixels=256, spp=8, max_bounces=3, lr=0.02, reg="none")
+    problem = build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, start,
+                            example.basis)  # fmt: skip
+    before_field = problem.params.field()
+    before_err = per_pixel_error(example, before_field)
+    rho0, lat0 = gbuffer_mse(lambda p: problem.params.gbuffer(p, None), example.gt_points, example.gt_values)
+    result = optimise(problem, cfg)
+    assert result.finished and result.steps_done == 40 and len(result.history) == 40
+    after_err = per_pixel_error(example, result.params.field())
+    rho1, lat1 = gbuffer_mse(lambda p: result.params.gbuffer(p, None), example.gt_points, example.gt_values)
+    # Paired difference on identical pixels and random numbers: significant beyond 4 standard errors of its mean.
+    d = before_err - after_err
+    assert float(d.mean()) > 4 * float(d.std()) / math.sqrt(d.numel()), (float(d.mean()), float(d.std()))
+    assert rho1 < 0.85 * rho0, (rho0, rho1)
+    assert lat1 < lat0, (lat0, lat1)
+    gt = GroundTruth(example.gt_points, example.gt_values, torch.zeros(0))
+    scores = gbuffer_psnr(lambda p: result.params.gbuffer(p, None), gt)
+    assert scores["psnr_basecolor"] == pytest.approx(10 * math.log10(1 / rho1), abs=1e-3)
+    assert scores["psnr_latents"] == pytest.approx(10 * math.log10(1 / lat1), abs=1e-3)
+
+
+def test_regulariser_weights_are_exp_minus_log_var():
+    target = torch.tensor([[0.2, 0.4, 0.6], [0.1, -0.5, 0.9]])
+    log_var = torch.tensor([[0.0, -2.0, 1.0], [3.0, -1.0, 0.5]])
+    anchor = Anchor(torch.zeros(2, 3), None, target, uncertainty_weights(log_var))
+    value = torch.tensor([[0.3, 0.1, 0.6], [0.4, -0.2, 0.0]], requires_grad=True)
+    reg = regulariser(lambda p, uv: value, anchor, torch.arange(2))
+    expected = (torch.exp(-log_var) * (value.detach() - target) ** 2).mean()
+    assert torch.allclose(reg, expected)
+    reg.backward()
+    assert value.grad is not None
+    want = 2 * torch.exp(-log_var) * (value.detach() - target) / value.numel()
+    assert torch.allclose(value.grad, want)
+    # The oracle weights are 1 / squared error, floored.
+    truth = target + torch.tensor([[0.1, 0.0, 1.0], [0.5, 0.2, 0.01]])
+    w = oracle_weights(target, truth, eps=1e-3)
+    assert torch.allclose(w, 1 / ((target - truth) ** 2).clamp_min(1e-3))
+
+
+def test_anchor_uses_the_lmrm_uncertainty_and_pulls_toward_its_gbuffers(example, truth_prediction):
+    # An "LMRM" that is nearly right and confident (log_var = -4 everywhere via the decoder's bias).
+    pred = perturbed(truth_prediction, 0.0)
+    with torch.no_grad():
+        last = pred.uncertainty_decoder.net[-1]
+        last.weight.zero_()
+        last.bias.fill_(-4.0)
+    base = TTOConfig.preset("tiny", steps=10, pixels=64, spp=1, max_bounces=1, lr=0.05, init="random",
+                            lambda_reg=0.05)  # fmt: skip
+    problem = build_problem(base, example.mesh, example.envmap, example.photos, example.capture.tonemap, pred,
+                            example.basis)  # fmt: skip
+    anchor = problem.anchor
+    assert anchor is not None
+    assert torch.allclose(anchor.weight, torch.full_like(anchor.weight, math.exp(4.0)))
+    rho_a, lat_a, _ = pred.gbuffers(anchor.points)
+    assert torch.allclose(anchor.target, torch.cat([rho_a, lat_a], -1))
+    reg_run = optimise(problem, base)
+    free = replace(base, reg="none")
+    free_run = optimise(build_problem(free, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                                      pred, example.basis), free)  # fmt: skip
+    target = torch.cat([rho_a, lat_a], -1)
+
+    def distance(run) -> float:
+        with torch.no_grad():
+            return float(((run.params.gbuffer(anchor.points, None) - target) ** 2).mean())
+
+    assert distance(reg_run) < 0.7 * distance(free_run), (distance(reg_run), distance(free_run))
+
+
+def test_gradients_reach_only_the_triplane(example, truth_prediction):
+    pred = perturbed(truth_prediction, 0.1)
+    cfg = TTOConfig.preset("tiny", steps=1, pixels=64, spp=1, max_bounces=2, init="lmrm")
+    # reg="uncertainty" with a prediction: the anchor is active as well as the photometric term.
+    problem = build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, pred,
+                            example.basis)  # fmt: skip
+    frozen = {name: p.detach().clone() for mod in (pred.material_decoder, pred.uncertainty_decoder, example.basis)
+              for name, p in mod.named_parameters(prefix=type(mod).__name__)}  # fmt: skip
+    start = problem.params.tensor.detach().clone()
+    optimise(problem, cfg)
+    assert problem.params.tensor.requires_grad and problem.params.tensor.grad is not None
+    assert float(problem.params.tensor.grad.abs().sum()) > 0
+    assert not torch.equal(problem.params.tensor.detach(), start)
+    for mod in (pred.material_decoder, pred.uncertainty_decoder, pred.pbr_decoder, example.basis):
+        for name, p in mod.named_parameters(prefix=type(mod).__name__):
+            assert not p.requires_grad and p.grad is None, name
+            if name in frozen:
+                assert torch.equal(p, frozen[name]), name
+    # The prediction's own triplane (the anchor) is a separate tensor and stays put.
+    assert torch.equal(pred.triplane.planes, perturbed(truth_prediction, 0.1).triplane.planes)
+
+
+def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, tmp_path):
+    cfg = TTOConfig.preset("tiny", steps=6, pixels=64, spp=2, max_bounces=2, checkpoint_every=0, init="lmrm")
+
+    def problem():
+        return build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                             perturbed(truth_prediction, 0.2), example.basis)  # fmt: skip
+
+    whole = optimise(problem(), cfg)
+    checkpoint = tmp_path / "checkpoint.pt"
+    calls = {"n": 0}
+
+    def stop_after_three() -> bool:
+        calls["n"] += 1
+        return calls["n"] > 3
+
+    first = optimise(problem(), cfg, should_stop=stop_after_three, checkpoint=checkpoint)
+    assert not first.finished and first.steps_done == 3 and checkpoint.is_file()
+    second = optimise(problem(), cfg, checkpoint=checkpoint)
+    assert second.finished and second.steps_done == 6
+    assert torch.equal(second.params.tensor, whole.params.tensor)
+    assert second.history == whole.history
+    # A checkpoint of another configuration is refused with a clear message.
+    with pytest.raises(ValueError, match="another configuration"):
+        optimise(problem(), replace(cfg, lr=0.5), checkpoint=checkpoint)
+
+
+@pytest.mark.parametrize("field,material,reg", [("uv", "neural", "uncertainty"), ("triplane", "pbr", "uncertainty"),
+                                                ("uv", "pbr", "none"), ("triplane", "neural", "oracle")])
+def test_variants_optimise_their_own_tensor(example, truth_prediction, field, material, reg):
+    pred = perturbed(truth_prediction, 0.2)
+    cfg = TTOConfig.preset("tiny", steps=3, pixels=64, spp=1, max_bounces=1, field=field, material=material, reg=reg,
+                           uv_resolution=32)  # fmt: skip
+    truth = truth_lookup(GroundTruth(example.gt_points, example.gt_values, torch.zeros(0))) if reg == "oracle" else None
+    problem = build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, pred,
+                            example.basis, truth=truth)  # fmt: skip
+    channels = {"neural": 9, "pbr": 5}[material]
+    if field == "uv":
+        assert tuple(problem.params.tensor.shape) == (32, 32, channels) and problem.mesh.uvs is not None
+    start = problem.params.tensor.detach().clone()
+    result = optimise(problem, cfg)
+    assert result.finished and all(math.isfinite(r["loss"]) for r in result.history)
+    assert not torch.equal(result.params.tensor.detach(), start)
+    if field == "uv":
+        t = result.params.tensor.detach()
+        assert float(t.min()) >= (-1 if material == "neural" else 0) and float(t.max()) <= 1
+    if reg != "none":
+        assert problem.anchor is not None and problem.anchor.target.shape[-1] == channels
+
+
+def test_misconfigured_variants_fail_clearly(example):
+    pred = random_prediction()
+    cfg = TTOConfig.preset("tiny")
+    with pytest.raises(ValueError, match="no trained LMRM"):
+        build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, pred, example.basis,
+                      anchor_available=False)  # fmt: skip
+    with pytest.raises(ValueError, match="ground-truth"):
+        build_problem(replace(cfg, reg="oracle"), example.mesh, example.envmap, example.photos,
+                      example.capture.tonemap, pred, example.basis)  # fmt: skip
+    with pytest.raises(ValueError, match="field"):
+        replace(cfg, field="mesh").check()  # type: ignore[arg-type]
+    assert step_generator(cfg, 3, torch.device("cpu")).initial_seed() == step_generator(cfg, 3, torch.device("cpu")
+                                                                                       ).initial_seed()
