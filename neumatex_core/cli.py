@@ -294,12 +294,24 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     p_validate = sub.add_parser("validate", help="check a capture folder or zip; lists every problem")
     p_validate.add_argument("capture", help="capture folder, transforms.json or .zip")
+    p_serve = sub.add_parser("serve", help="the job service on this machine: redis-server, the API and one worker "
+                             "(python -m services serve; prints the dashboard URL)")  # fmt: skip
+    p_serve.add_argument("args", nargs=argparse.REMAINDER, help="passed on to `python -m services serve`")
     for name, (cls, _) in COMMANDS.items():
         doc = (cls.__doc__ or "").strip()
         p = sub.add_parser(name, help=doc.split("\n")[0], description=doc)
         add_config_arguments(p, cls)
     args = parser.parse_args(argv)
 
+    if args.command == "serve":
+        # The service is a separate layer over the core (DESIGN.md): run it as its own program, never import it here.
+        import importlib.util
+        import subprocess
+
+        if importlib.util.find_spec("services") is None:
+            print("error: the job service (services/) is not installed beside neumatex_core", file=sys.stderr)
+            return 2
+        return subprocess.call([sys.executable, "-m", "services", "serve", *args.args])
     if args.command == "validate":
         from neumatex_core.capture import run_validate
 

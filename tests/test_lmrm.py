@@ -23,6 +23,7 @@ import torch
 from conftest import ENVMAPS, MESHES, REPO
 from safetensors.torch import load_file
 
+from neumatex_core.capture.tonemap import srgb_eotf
 from neumatex_core.eval.metrics import psnr
 from neumatex_core.fields import MaterialDecoder, Triplane
 from neumatex_core.geometry.mesh import load_mesh
@@ -221,19 +222,39 @@ def test_shipped_checkpoint_loads_and_checks_the_basis(tmp_path):
 
 
 def test_shipped_model_beats_the_mean_material(tmp_path):
+    """On 4 held-out objects (test split, seed 77), pooled over their covered pixels, the shipped LMRM beats the
+    training-set mean material on base colour and latents, and the per-pixel image colour on base colour. On the
+    40 benchmark objects the margins are +1.1 / +0.6 dB and +4.8 dB with a per-object spread of 3 / 1.6 / 3 dB
+    (bench/lmrm.py), so one object cannot carry a margin; 4 pooled objects carry a positive one."""
     out = tmp_path / "held-out"
-    cfg = SynthConfig(out=str(out), n=1, split="test", seed=77, **{**TINY, "resolution": 64, "spp": 8,
+    cfg = SynthConfig(out=str(out), n=4, split="test", seed=77, **{**TINY, "resolution": 64, "spp": 8,
                                                                    "max_bounces": 3})  # type: ignore[arg-type]
     generate(cfg)
-    obj = load_synth_object(out / "test-000000")
     lmrm = load_lmrm()
-    pred = lmrm.predict(obj.rgb, obj.cameras, load_mesh(obj.folder / "mesh.obj"), obj.envmap)
-    t = obj.targets[obj.mask]
-    with torch.no_grad():
-        rho, lat, _ = pred.gbuffers(obj.position[obj.mask])
-    mean = torch.tensor(lmrm.record["metrics"]["training_mean"]).expand_as(t)
-    ours_rho, mean_rho = psnr(rho[None], t[None, :, :3]), psnr(mean[None, :, :3], t[None, :, :3])
-    ours_lat = psnr((lat[None] + 1) / 2, (t[None, :, 3:9] + 1) / 2)
-    mean_lat = psnr((mean[None, :, 3:9] + 1) / 2, (t[None, :, 3:9] + 1) / 2)
-    assert ours_rho > mean_rho + 1.0, (ours_rho, mean_rho)
-    assert ours_lat > mean_lat + 0.5, (ours_lat, mean_lat)
+    mean = torch.tensor(lmrm.record["metrics"]["training_mean"])
+    ours, base, image = [], [], []
+    for i in range(4):
+        obj = load_synth_object(out / f"test-{i:06d}")
+        pred = lmrm.predict(obj.rgb, obj.cameras, load_mesh(obj.folder / "mesh.obj"), obj.envmap)
+        t = obj.targets[obj.mask]
+        with torch.no_grad():
+            rho, lat, _ = pred.gbuffers(obj.position[obj.mask])
+        ours.append(torch.cat([rho, lat], -1))
+        base.append(mean[:9].expand(t.shape[0], 9))
+        image.append(srgb_eotf(obj.rgb[obj.mask]))
+        ours[-1] = torch.cat([ours[-1], t[:, :9]], -1)  # keep the truth beside the prediction
+    pooled = torch.cat(ours)
+    pred_all, truth = pooled[:, :9], pooled[:, 9:]
+    base_all, image_all = torch.cat(base), torch.cat(image)
+
+    def db(a: torch.Tensor, b: torch.Tensor) -> float:
+        return psnr(a[None, :, None], b[None, :, None])
+
+    ours_rho, mean_rho, image_rho = db(pred_all[:, :3], truth[:, :3]), db(base_all[:, :3], truth[:, :3]), \
+        db(image_all, truth[:, :3])
+    ours_lat = db((pred_all[:, 3:] + 1) / 2, (truth[:, 3:] + 1) / 2)
+    mean_lat = db((base_all[:, 3:] + 1) / 2, (truth[:, 3:] + 1) / 2)
+    print(f"LMRM {ours_rho:.2f} / {ours_lat:.2f} dB, mean {mean_rho:.2f} / {mean_lat:.2f}, image {image_rho:.2f}")
+    assert ours_rho > mean_rho, (ours_rho, mean_rho)
+    assert ours_lat > mean_lat, (ours_lat, mean_lat)
+    assert ours_rho > image_rho + 1.0, (ours_rho, image_rho)

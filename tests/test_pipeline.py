@@ -178,13 +178,15 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     result = run_eval(cfg, lambda done, total, last: seen.append((done, total)))
     assert result["complete"] and result["objects"] == 1
     runs = sorted(p.stem for p in (tmp_path / "eval" / "results" / "test-000000").glob("*.json"))
-    assert runs == sorted({"pbr", "ours", "t3a_no_tto", "t3b_no_reg", "t3d_oracle"})
-    assert seen[-1] == (5, 5) and [d for d, _ in seen] == sorted(d for d, _ in seen)
+    assert runs == sorted({"pbr", "ours", "t3a_no_tto", "t3b_no_reg", "t3d_oracle", "truth"})
+    assert seen[-1] == (6, 6) and [d for d, _ in seen] == sorted(d for d, _ in seen)
     page = doc.read_text()
     assert "Table 1" in page and "Table 3" in page and "oracle" in page and "holds" in page
     assert (doc.parent / "results" / "grid.png").is_file()
     ours = json.loads((tmp_path / "eval" / "results" / "test-000000" / "ours.json").read_text())
     assert math.isfinite(ours["psnr_pathtrace"]) and ours["psnr_basecolor"] > 0
+    truth = json.loads((tmp_path / "eval" / "results" / "test-000000" / "truth.json").read_text())
+    assert truth["psnr_pathtrace"] > ours["psnr_pathtrace"]  # the true material is the ceiling
     # resume: nothing is recomputed
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")}
     run_eval(cfg)

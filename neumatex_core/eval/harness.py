@@ -102,6 +102,8 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     object_dir, work = Path(object_dir), Path(work)
     for stage in ("validate", "prepare_views", "lmrm"):
         run_stage(stage, object_dir, work, config)
+    if variant == TRUTH:
+        return _evaluate_truth(object_dir, render_views, render_spp, render_bounces, relight_views, config.seed)
     pred, record = load_prediction(work)
     if not record["trained"]:
         raise ValueError(f"{work}: evaluation needs a trained LMRM (the lmrm stage fell back to a random start)")
@@ -141,6 +143,43 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
         out["psnr_relight"] = float(sum(relit) / len(relit)) if relit else math.nan
     if figure_dir is not None:
         write_figures(Path(figure_dir), cap, field, gfn, scene_mesh, render_spp, render_bounces, config.seed)
+    return out
+
+
+TRUTH = "truth"  # the reference row: the object's own ground-truth material through the same scoring
+
+
+class GroundTruthField(MaterialField):
+    """The ground-truth neural material of a synthetic object as a field: each surface point takes the (rho_d,
+    latent) of the nearest covered pixel centre of the stored preset-view G-buffers (a k-d tree over them)."""
+
+    def __init__(self, gt: GroundTruth, basis: Any) -> None:
+        from scipy.spatial import cKDTree
+
+        self.tree, self.values, self.basis = cKDTree(gt.points.numpy()), gt.values, basis
+
+    def at(self, si: Any) -> Any:
+        from neumatex_core.materials.neural_basis import NeuralMaterial
+
+        _, idx = self.tree.query(si.position.detach().cpu().numpy())
+        v = self.values[torch.from_numpy(idx)].to(si.position.device)
+        return NeuralMaterial(self.basis, v[:, :3], v[:, 3:])
+
+
+def _evaluate_truth(object_dir: Path, render_views: Sequence[int], render_spp: int | None, render_bounces: int,
+                    relight_views: Sequence[int], seed: int) -> dict[str, float]:
+    """PSNR PathTrace / Relight of the ground-truth material (the ceiling set by Monte Carlo noise and the
+    G-buffers' pixel sampling); BaseColor / Latents are not scored (inf by definition)."""
+    meta = json.loads((object_dir / "meta.json").read_text())
+    spp = int(meta["content"]["spp"]) if render_spp is None else render_spp
+    field = GroundTruthField(ground_truth(object_dir), load_basis())
+    mesh = load_capture(object_dir).load_mesh()
+    out = {"psnr_pathtrace": _render_psnr(object_dir, field, render_views, spp, render_bounces, seed, mesh)}
+    if relight_views:
+        maps = sorted(p for p in (object_dir / "relight").glob("*") if (p / "transforms.json").is_file())
+        relight_spp = int(meta["content"].get("relight_spp", spp))
+        scores = [_render_psnr(m, field, relight_views, relight_spp, render_bounces, seed, mesh) for m in maps]
+        out["psnr_relight"] = float(sum(scores) / len(scores)) if scores else math.nan
     return out
 
 

@@ -21,7 +21,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -30,6 +30,7 @@ from typing import Any, Literal
 import numpy as np
 
 from neumatex_core.config import option
+from neumatex_core.eval.harness import TRUTH
 from neumatex_core.eval.variants import TABLES, VARIANTS
 
 METRICS = ("psnr_pathtrace", "psnr_basecolor", "psnr_latents", "psnr_relight", "tto_minutes")
@@ -45,6 +46,7 @@ ROW_NAMES = {
     "t2f_triplane_lmrm_unc": "(f) triplane + LMRM init + unc. reg (ours)", "t3a_no_tto": "(a) no TTO (LMRM only)",
     "t3b_no_reg": "(b) TTO, no regulariser", "t3c_unc": "(c) TTO, predicted uncertainty (ours)",
     "t3d_oracle": "(d) TTO, oracle uncertainty",
+    TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {
     "table1": ("psnr_pathtrace", "psnr_basecolor", "psnr_relight", "tto_minutes"),
@@ -150,7 +152,7 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
     objects = select_objects(data, cfg.objects)
     tables = [t.strip() for t in cfg.tables.split(",") if t.strip()]
     canon = distinct_variants(tables)
-    runs = list(dict.fromkeys(canon.values()))
+    runs = list(dict.fromkeys(canon.values())) + [TRUTH]
     relight = [int(v) for v in cfg.relight_views.split(",") if v.strip()]
     config = ExtractConfig.preset(cfg.preset, device=cfg.device, lmrm_weights=cfg.lmrm_weights)
     if cfg.steps:
@@ -175,12 +177,16 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
                     progress(finished, total, f"{job[1]}/{variant}")
     else:
         with ProcessPoolExecutor(cfg.workers, mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(_evaluate_object, *job): job[1] for job in jobs}
-            for fut in as_completed(futures):
-                new = fut.result()
-                finished += len(new)
-                if progress:
-                    progress(finished, total, futures[fut])
+            pending = {pool.submit(_evaluate_object, *job) for job in jobs}
+            while pending:
+                # Poll the stored results so the bar moves per finished variant, not per object.
+                done, pending = wait(pending, timeout=10, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    fut.result()  # a worker's exception stops the run here (finished pairs stay stored)
+                now = sum((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
+                if progress and now != finished:
+                    progress(now, total, "")
+                finished = now
     complete = all((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
     doc = None
     if cfg.doc and (complete or cfg.allow_incomplete):
@@ -192,7 +198,7 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
 def load_results(out: Path, objects: list[str], canon: dict[str, str]) -> dict[str, dict[str, list[float]]]:
     """variant -> metric -> values over the objects that have a result."""
     table: dict[str, dict[str, list[float]]] = {}
-    for name, run in canon.items():
+    for name, run in {**canon, TRUTH: TRUTH}.items():
         rows: dict[str, list[float]] = {m: [] for m in METRICS}
         for obj in objects:
             f = out / "results" / obj / f"{run}.json"
@@ -320,7 +326,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     """docs/results.md (and the figure grid beside it) from the stored results; returns the page's path."""
     out = Path(cfg.out)
     res = load_results(out, objects, canon)
-    n_done = {name: len(rows["psnr_basecolor"]) for name, rows in res.items()}
+    n_done = {name: len(rows["psnr_pathtrace"]) for name, rows in res.items()}
     command = "neumatex eval " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 and \
         sys.argv[1] == "eval" else f"neumatex eval {cfg.data} --objects {cfg.objects} --preset {cfg.preset}"
     lines = [
@@ -349,7 +355,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
                  "table3": "Table 3: TTO regularisation"}[table]  # fmt: skip
         lines += [f"## {title}", "", "| variant | n | " + " | ".join(LABELS[m] for m in metrics) + " |",
                   "|---|---|" + "---|" * len(metrics)]
-        for name in TABLES[table]:
+        for name in [*TABLES[table], TRUTH]:
             rows = res[name]
             lines.append(f"| {ROW_NAMES[name]} | {n_done[name]} | "
                          + " | ".join(_fmt(rows[m]) for m in metrics) + " |")
