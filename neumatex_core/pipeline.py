@@ -627,6 +627,27 @@ def _numbers(metrics: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in metrics.items() if isinstance(v, int | float) and math.isfinite(float(v))}
 
 
+WORK_CONFIG = "config.json"
+
+
+def _check_work_config(work: Path, config: ExtractConfig) -> None:
+    """Resuming is only sound with the configuration the finished stages were made with: the first `extract` into
+    `work` records it (device aside: a run may resume on another device); a later one with other settings is refused
+    with the differences named, rather than silently mixing stages made under two configurations."""
+    current = {k: v for k, v in config.to_dict().items() if k != "device"}
+    record = work / WORK_CONFIG
+    if record.is_file():
+        try:
+            stored = json.loads(record.read_text())
+        except ValueError:
+            stored = None
+        if stored is not None and stored != current and any(is_done(work, s) for s in STAGES):
+            diff = sorted(k for k in set(stored) | set(current) if stored.get(k) != current.get(k))
+            raise PipelineError(f"{work}: its finished stages were made with other settings ({', '.join(diff)} "
+                                "differ); delete the folder to start over, or give another work folder")
+    record.write_text(json.dumps(current, indent=1, sort_keys=True))
+
+
 def default_work(out: Path) -> Path:
     """The work folder of an extraction into `out` when none is given: a sibling `.<name>.work`."""
     out = Path(out)
@@ -640,6 +661,7 @@ def extract(capture: Path, out: Path, config: ExtractConfig, progress: Progress 
     capture, out = Path(capture), Path(out)
     work = Path(work) if work is not None else default_work(out)
     work.mkdir(parents=True, exist_ok=True)
+    _check_work_config(work, config)
     for stage in STAGES:
         run_stage(stage, capture, work, config, progress, should_stop)
     source = asset_path(work)

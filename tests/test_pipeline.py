@@ -193,3 +193,13 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")} == stamps
     with pytest.raises(ValueError, match="unknown table"):
         run_eval(EvalConfig(data=str(data), tables="table9", progress=False))
+
+
+def test_resuming_with_other_settings_is_refused_naming_them(tmp_path, tiny_lmrm):
+    work = tmp_path / "work"
+    extract(EXAMPLE, tmp_path / "asset", config(tiny_lmrm), work=work)
+    from dataclasses import replace
+
+    extract(EXAMPLE, tmp_path / "asset", replace(config(tiny_lmrm), device="auto"), work=work)  # resumes
+    with pytest.raises(PipelineError, match="init"):
+        extract(EXAMPLE, tmp_path / "asset2", config(tiny_lmrm, init="random"), work=work)

@@ -7,7 +7,8 @@ TTO variant of the chosen tables (`eval/variants.py`; variants with identical se
 (c), run once) is scored by `harness.evaluate_variant` and stored as `OUT/results/<object>/<variant>.json`, so a
 stopped run resumes where it was and finished pairs are never redone. When every pair is done (or with
 `--allow-incomplete`), `write_results` aggregates mean and std over objects into the tables of `docs/results.md`
-with the orderings the paper claims checked one by one, figure grids (reference, ours, PBR baseline; base colour,
+with the orderings the paper claims checked one by one, the hand-written discussion in `results-discussion.md`
+beside the page (when present), figure grids (reference, ours, PBR baseline; base colour,
 latents, LMRM uncertainty) under `docs/results/`, and the exact command and commit.
 """
 
@@ -365,6 +366,9 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         verdict = "not measured" if ok is None else ("holds" if ok else "**does not hold**")
         lines.append(f"- {claim}: {verdict} ({detail})")
     lines.append("")
+    notes = doc.with_name(doc.stem + "-discussion.md")
+    if notes.is_file():  # the hand-written reading of these numbers, kept beside the page and included in it
+        lines += [notes.read_text().rstrip(), ""]
     grid = doc.parent / "results" / "grid.png"
     if figure_grid(cfg, objects, grid):
         rel = os.path.relpath(grid, doc.parent)
