@@ -73,3 +73,11 @@ def config_from_args(cls: type[C], ns: argparse.Namespace) -> C:
             value = given
         values[f.name] = tuple(value) if isinstance(value, list) else value
     return cls(**values)
+
+
+def check_known_keys(cls: type, data: dict[str, Any], what: str) -> None:
+    """ValueError listing the keys of `data` that are not fields of the dataclass `cls` (`what`: its name in the
+    message, e.g. "TTO config"), so a stored or posted config with a typo is refused rather than half-applied."""
+    unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
+    if unknown:
+        raise ValueError(f"unknown {what} keys {unknown}")

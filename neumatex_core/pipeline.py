@@ -30,7 +30,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -39,6 +39,7 @@ import torch
 
 from neumatex_core.capture import Capture, CaptureError, load_capture, validate_capture
 from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.config import check_known_keys
 from neumatex_core.fields.decoders import DECODERS, MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.geometry.camera import Camera, preset_views
@@ -137,10 +138,7 @@ class ExtractConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ExtractConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown extract config keys {unknown}")
+        check_known_keys(cls, data, "extract config")
         values = dict(data)
         if isinstance(values.get("tto"), dict):
             values["tto"] = TTOConfig.from_dict(values["tto"])

@@ -135,12 +135,8 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     path = _render_psnr(object_dir, field, render_views, render_spp, render_bounces, config.seed, scene_mesh)
     out = {**scores, "psnr_pathtrace": path, "tto_minutes": seconds / 60, "tto_cpu_minutes": cpu / 60}
     if relight_views:
-        relit = []
-        maps = sorted(p for p in (object_dir / "relight").glob("*") if (p / "transforms.json").is_file())
-        for folder in maps:
-            spp = int(json.loads((object_dir / "meta.json").read_text())["content"].get("relight_spp", render_spp))
-            relit.append(_render_psnr(folder, field, relight_views, spp, render_bounces, config.seed, scene_mesh))
-        out["psnr_relight"] = float(sum(relit) / len(relit)) if relit else math.nan
+        out["psnr_relight"] = _relight_psnr(object_dir, field, relight_views, render_spp, render_bounces, config.seed,
+                                            scene_mesh)  # fmt: skip
     if figure_dir is not None:
         write_figures(Path(figure_dir), cap, field, gfn, scene_mesh, render_spp, render_bounces, config.seed)
     return out
@@ -176,11 +172,19 @@ def _evaluate_truth(object_dir: Path, render_views: Sequence[int], render_spp: i
     mesh = load_capture(object_dir).load_mesh()
     out = {"psnr_pathtrace": _render_psnr(object_dir, field, render_views, spp, render_bounces, seed, mesh)}
     if relight_views:
-        maps = sorted(p for p in (object_dir / "relight").glob("*") if (p / "transforms.json").is_file())
-        relight_spp = int(meta["content"].get("relight_spp", spp))
-        scores = [_render_psnr(m, field, relight_views, relight_spp, render_bounces, seed, mesh) for m in maps]
-        out["psnr_relight"] = float(sum(scores) / len(scores)) if scores else math.nan
+        out["psnr_relight"] = _relight_psnr(object_dir, field, relight_views, spp, render_bounces, seed, mesh)
     return out
+
+
+def _relight_psnr(object_dir: Path, field: MaterialField, views: Sequence[int], spp: int, bounces: int, seed: int,
+                  mesh: Any) -> float:
+    """Mean PSNR of `field` on frames `views` of every held-out lighting (`relight/K`) of the object, at the relight
+    photos' own sample count (meta.json content.relight_spp, else `spp`); NaN when the object has none."""
+    content = json.loads((object_dir / "meta.json").read_text())["content"]
+    relight_spp = int(content.get("relight_spp", spp))
+    maps = sorted(p for p in (object_dir / "relight").glob("*") if (p / "transforms.json").is_file())
+    scores = [_render_psnr(m, field, views, relight_spp, bounces, seed, mesh) for m in maps]
+    return float(sum(scores) / len(scores)) if scores else math.nan
 
 
 def write_figures(folder: Path, cap: Any, field: MaterialField, gfn: Any, mesh: Any, spp: int, bounces: int,

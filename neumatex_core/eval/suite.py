@@ -266,6 +266,7 @@ def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
     true and ours latents (channels 0-2); LMRM uncertainty (mean predicted std of the base colour). PNG."""
     import torch
 
+    from neumatex_core.capture import load_capture
     from neumatex_core.capture.tonemap import srgb_oetf_numpy
     from neumatex_core.geometry.gbuffer import render_gbuffer
     from neumatex_core.imageio import read_image, write_image
@@ -293,8 +294,6 @@ def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
             return img
 
         pred, _ = load_prediction(out / "work" / obj)
-        from neumatex_core.capture import load_capture
-
         cap = load_capture(data / obj)
         g = render_gbuffer(cap.load_mesh(), cap.frames[0].camera)
         sel = g.mask.reshape(-1)

@@ -21,7 +21,7 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
@@ -30,6 +30,7 @@ from torch import nn
 from torch.func import functional_call
 
 from neumatex_core.capture.tonemap import srgb_eotf
+from neumatex_core.config import check_known_keys
 from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder, UncertaintyDecoder
 from neumatex_core.fields.triplane import PLANE_AXES, Triplane
 from neumatex_core.lighting.prefilter import KAPPAS
@@ -69,10 +70,7 @@ class LMRMConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LMRMConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown LMRM config keys {unknown}")
+        check_known_keys(cls, data, "LMRM config")
         return cls(**data)
 
     def to_dict(self) -> dict[str, Any]:

@@ -12,8 +12,10 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
+
+from neumatex_core.config import check_known_keys
 
 FieldKind = Literal["triplane", "uv"]
 InitKind = Literal["lmrm", "random"]
@@ -89,8 +91,5 @@ class TTOConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> TTOConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"unknown TTO config keys {unknown}")
+        check_known_keys(cls, data, "TTO config")
         return cls(**data)

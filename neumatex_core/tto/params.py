@@ -74,18 +74,25 @@ class NeuralTriplane(Parametrisation):
         return torch.cat(self._field.gbuffer(points), dim=-1)
 
 
-class NeuralUV(Parametrisation):
-    def __init__(self, texture: torch.Tensor, basis: NeuralBasis) -> None:
-        self.tensor = texture.detach().clone().requires_grad_(True)
-        self._field = UVTextureField(self.tensor, basis)
+class _UVTexture(Parametrisation):
+    """A texture [H, W, C] optimised in place (a copy of the start); G-buffers are read at the anchor points' uvs."""
 
-    def field(self) -> UVTextureField:
-        return self._field
+    def __init__(self, texture: torch.Tensor) -> None:
+        self.tensor = texture.detach().clone().requires_grad_(True)
 
     def gbuffer(self, points: torch.Tensor, uv: torch.Tensor | None) -> torch.Tensor:
         if uv is None:
             raise ValueError("the UV-texture field needs the uvs of the anchor points")
         return sample_uv(self.tensor, uv)
+
+
+class NeuralUV(_UVTexture):
+    def __init__(self, texture: torch.Tensor, basis: NeuralBasis) -> None:
+        super().__init__(texture)
+        self._field = UVTextureField(self.tensor, basis)
+
+    def field(self) -> UVTextureField:
+        return self._field
 
     def project(self) -> None:
         with torch.no_grad():
@@ -107,18 +114,13 @@ class PBRTriplane(Parametrisation):
         return self._field.values(points)
 
 
-class PBRUV(Parametrisation):
+class PBRUV(_UVTexture):
     def __init__(self, texture: torch.Tensor) -> None:
-        self.tensor = texture.detach().clone().requires_grad_(True)
+        super().__init__(texture)
         self._field = PBRTextureField(self.tensor)
 
     def field(self) -> PBRTextureField:
         return self._field
-
-    def gbuffer(self, points: torch.Tensor, uv: torch.Tensor | None) -> torch.Tensor:
-        if uv is None:
-            raise ValueError("the UV-texture field needs the uvs of the anchor points")
-        return sample_uv(self.tensor, uv)
 
     def project(self) -> None:
         with torch.no_grad():
