@@ -203,3 +203,20 @@ def test_resuming_with_other_settings_is_refused_naming_them(tmp_path, tiny_lmrm
     extract(EXAMPLE, tmp_path / "asset", replace(config(tiny_lmrm), device="auto"), work=work)  # resumes
     with pytest.raises(PipelineError, match="init"):
         extract(EXAMPLE, tmp_path / "asset2", config(tiny_lmrm, init="random"), work=work)
+
+
+def test_orderings_use_paired_differences_with_standard_errors():
+    from neumatex_core.eval.suite import orderings, paired_difference
+
+    # Two objects far apart in difficulty; ours beats PBR by 1.5 and 2.5 dB on them: paired mean 2.0,
+    # std(ddof=1) 0.707, standard error 0.5. A third object has only PBR and must not enter the pair.
+    res = {"ours": {"psnr_pathtrace": {"a": 31.5, "b": 20.5}},
+           "pbr": {"psnr_pathtrace": {"a": 30.0, "b": 18.0, "c": 25.0}}}
+    mean, se, n = paired_difference(res, "ours", "pbr", "psnr_pathtrace")
+    assert n == 2 and mean == pytest.approx(2.0) and se == pytest.approx(0.5)
+    claims = {claim: (ok, detail) for claim, ok, detail in orderings(res)}
+    ok, detail = claims["neural material beats the PBR baseline on PathTrace by a wide margin (>= 1 dB)"]
+    assert ok is True and "+2.00 ± 0.50 dB (paired, n=2)" in detail
+    assert all(ok is None for c, (ok, _) in claims.items() if "PBR" not in c)  # nothing else was measured
+    res["pbr"]["psnr_pathtrace"] = {"a": 31.0, "b": 19.0}  # +0.5, +1.5: mean 1.0, se 0.5: within 2 se
+    assert "not resolved" in dict((c, d) for c, _, d in orderings(res))[next(iter(claims))]
