@@ -19,3 +19,15 @@ def shared_data() -> Path:
     data = SHARED / "data"
     assert data.is_dir(), f"shared data not found at {data}; set NEUMATEX_SHARED"
     return data
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One torch thread for a module's tests: torch's intra-op threads stall 10-70x when another process holds a
+    core (bench/README.md), and these tests are small. Use with `pytestmark = pytest.mark.usefixtures("one_thread")`."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -38,13 +38,7 @@ from neumatex_core.render.path_tracer import PathTracerConfig
 BAKED_PSNR_MIN = 45.0
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """torch's intra-op threads stall 10-70x when another process holds a core (bench/README.md)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -27,15 +27,7 @@ from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
 from neumatex_core.render.views import sphere_camera
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """torch's intra-op threads stall 10-70x when another process holds a core (bench/README.md); these tests are
-    small, so they run on one thread whatever the machine is doing."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

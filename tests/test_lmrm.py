@@ -40,12 +40,7 @@ TINY = dict(resolution=24, spp=2, max_bounces=1, photos=0, relight_maps=0, worke
             meshes=str(MESHES), envmaps=str(ENVMAPS))  # fmt: skip
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -39,13 +39,7 @@ TINY = dict(n=2, split="test", resolution=24, spp=4, photos=1, relight_maps=1, r
             workers=1, progress=False, meshes=str(MESHES), envmaps=str(ENVMAPS))  # fmt: skip
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """torch's intra-op threads stall 10-70x when another process holds a core (bench/README.md)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def file_hashes(root: Path) -> dict[str, bytes]:

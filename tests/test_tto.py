@@ -23,13 +23,7 @@ from neumatex_core.tto import Anchor, TTOConfig, build_problem, optimise, oracle
 from neumatex_core.tto.loss import regulariser
 from neumatex_core.tto.optimise import step_generator
 
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,6 @@ A read asset renders bit for bit like the written one (same device and seed): ev
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import importlib.metadata
 import os
 import shutil
@@ -60,6 +59,7 @@ from neumatex_core.assets.pbr_fit import (
 from neumatex_core.assets.usd import write_usd
 from neumatex_core.fields.decoders import DECODERS, module_id
 from neumatex_core.fields.triplane import Triplane
+from neumatex_core.hashing import sha256_file
 from neumatex_core.materials.neural_basis import BasisError, NeuralBasis, check_basis_id, load_basis
 
 MESH = "mesh.obj"
@@ -80,14 +80,6 @@ def neumatex_version() -> str:
         return importlib.metadata.version("neumatex")
     except importlib.metadata.PackageNotFoundError:
         return "unknown"
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # -- texture files -------------------------------------------------------------------------------------------

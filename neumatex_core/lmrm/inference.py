@@ -17,7 +17,6 @@ training data manifest hash and the training and validation metrics.
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +34,7 @@ from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.geometry.raycast import RayCaster
+from neumatex_core.hashing import sha256_file
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.data import lighting_cues, prefiltered, to_camera_directions
 from neumatex_core.lmrm.model import LMRMConfig, LMRMNet, ObjectInputs, view_inputs
@@ -152,20 +152,12 @@ class LMRM:
         return LMRMPrediction(triplane, mat, unc, pbr)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def save_lmrm(net: LMRMNet, weights: Path, record: Path, basis: NeuralBasis, info: dict[str, Any]) -> dict[str, Any]:
     """Write the network (safetensors, float32) and its record (JSON: config, hashes, basis, `info`)."""
     weights.parent.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().float().cpu().contiguous() for k, v in net.state_dict().items()}
     save_file(tensors, str(weights), metadata={"format": FORMAT})
-    rec = {"format": FORMAT, "config": net.cfg.to_dict(), "weights": weights.name, "sha256": _sha256(weights),
+    rec = {"format": FORMAT, "config": net.cfg.to_dict(), "weights": weights.name, "sha256": sha256_file(weights),
            "basis_id": basis.basis_id, "basis_sha256": basis.content_hash, **info}  # fmt: skip
     record.write_text(json.dumps(rec, indent=1, sort_keys=True) + "\n")
     return rec
@@ -186,7 +178,7 @@ def load_lmrm_from(weights: Path, record: Path, device: torch.device | str = "cp
         raise LMRMError(f"{record}: not an LMRM checkpoint record ({exc})") from None
     if fmt != FORMAT:
         raise LMRMError(f"{record}: checkpoint format {fmt!r}, this version reads {FORMAT!r}")
-    digest = _sha256(weights)
+    digest = sha256_file(weights)
     if digest != expected:
         raise LMRMError(f"{weights}: SHA-256 {digest[:12]}... does not match the record's {expected[:12]}... "
                         "(the weights were changed or corrupted)")

@@ -23,7 +23,6 @@ can only be decoded by exactly that basis.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -34,6 +33,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from neumatex_core.hashing import sha256_file
 from neumatex_core.materials.base import Material, cosine_pdf, cosine_sample, luminance
 from neumatex_core.materials.layered import N_PARAMS
 from neumatex_core.materials.microfacet import ALPHA_MIN, ggx_pdf_visible, ggx_sample_visible
@@ -133,14 +133,6 @@ class NeuralBasis(nn.Module):
                 "architecture": asdict(self.arch), "metrics": metrics}  # fmt: skip
         record.write_text(json.dumps(info, indent=2) + "\n")
         return self.basis_id
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def load_basis_from(weights: Path, record: Path, device: torch.device | str = "cpu") -> NeuralBasis:

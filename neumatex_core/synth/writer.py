@@ -43,6 +43,7 @@ from neumatex_core.geometry.camera import PRESET_ORBIT_VIEWS, Camera, camera_fro
 from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh, load_mesh
 from neumatex_core.geometry.raycast import RayCaster
+from neumatex_core.hashing import sha256_file
 from neumatex_core.imageio import write_image
 from neumatex_core.lighting.envmap import EnvironmentMap, envmap_rgb
 from neumatex_core.materials.field import MaterialField
@@ -115,14 +116,6 @@ def _link(src: Path, dst: Path) -> None:
 
 def _intrinsics(cam: Camera) -> dict[str, float | int]:
     return {"fl_x": cam.fl_x, "fl_y": cam.fl_y, "cx": cam.cx, "cy": cam.cy, "w": cam.width, "h": cam.height}
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def tree_hashes(root: Path, exclude: tuple[str, ...] = ("meta.json",)) -> tuple[dict[str, str], str]:
