@@ -214,3 +214,14 @@ def test_orderings_use_paired_differences_with_standard_errors():
     assert all(ok is None for c, (ok, _) in claims.items() if "PBR" not in c)  # nothing else was measured
     res["pbr"]["psnr_pathtrace"] = {"a": 31.0, "b": 19.0}  # +0.5, +1.5: mean 1.0, se 0.5: within 2 se
     assert "not resolved" in dict((c, d) for c, _, d in orderings(res))[next(iter(claims))]
+
+
+def test_bias_only_psnr_takes_the_reference_rows_noise_out():
+    from neumatex_core.eval.suite import TRUTH, bias_only_psnr
+
+    # reference MSE 1e-3 (30 dB) is the noise; a variant at MSE 2e-3 has bias^2 = 1e-3: 30 dB without the noise.
+    res = {TRUTH: {"psnr_pathtrace": {"a": 30.0}}, "v": {"psnr_pathtrace": {"a": -10 * math.log10(2e-3)}}}
+    value, n = bias_only_psnr(res, "v")
+    assert n == 1 and value == pytest.approx(30.0, abs=1e-9)
+    res["v"]["psnr_pathtrace"]["a"] = 30.0  # as good as the reference: clamped, not infinite
+    assert bias_only_psnr(res, "v")[0] == pytest.approx(60.0)
