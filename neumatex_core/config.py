@@ -75,6 +75,28 @@ def config_from_args(cls: type[C], ns: argparse.Namespace) -> C:
     return cls(**values)
 
 
+def command_line(program: str, config: Any, skip: tuple[str, ...] = ()) -> str:
+    """The shell command that rebuilds `config` (a config dataclass instance) through `add_config_arguments`:
+    positional fields first, then every other field that differs from its default, except those in `skip`."""
+    import shlex
+
+    words, flags = [program], []
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if f.name in skip:
+            continue
+        if f.metadata.get("positional"):
+            words.append(shlex.quote(str(value)))
+        elif value != f.default:
+            flag = "--" + f.name.replace("_", "-")
+            if isinstance(value, bool):
+                flags.append(flag if value else "--no-" + flag[2:])
+            else:
+                values = value if isinstance(value, tuple) else (value,)
+                flags.append(" ".join([flag, *(shlex.quote(str(v)) for v in values)]))
+    return " ".join(words + flags)
+
+
 def check_known_keys(cls: type, data: dict[str, Any], what: str) -> None:
     """ValueError listing the keys of `data` that are not fields of the dataclass `cls` (`what`: its name in the
     message, e.g. "TTO config"), so a stored or posted config with a typo is refused rather than half-applied."""

@@ -62,3 +62,20 @@ def test_render_bad_input_is_a_clear_error(tmp_path):
         "render", "--mesh", str(MESHES / "suzanne.obj"), "--envmap", str(ENVMAPS / "studio.exr"), "--views", "99"
     )
     assert res.returncode == 2 and "--views" in res.stderr
+
+
+def test_command_line_rebuilds_the_config_it_describes():
+    import argparse
+    import shlex
+
+    from neumatex_core.config import add_config_arguments, command_line, config_from_args
+    from neumatex_core.eval.suite import EvalConfig
+
+    cfg = EvalConfig(data="data/my split", out="runs/x", objects="every:5", relight_views="0,8", workers=2,
+                     progress=False, allow_incomplete=True)
+    line = command_line("neumatex eval", cfg)
+    assert line.startswith("neumatex eval 'data/my split' ") and "--workers 2" in line and "--no-progress" in line
+    assert "--preset" not in line  # defaults are left out
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser, EvalConfig)
+    assert config_from_args(EvalConfig, parser.parse_args(shlex.split(line)[2:])) == cfg

@@ -185,6 +185,15 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")}
     run_eval(cfg)
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")} == stamps
+    # report only: the stored run's settings and results, nothing recomputed, whatever this command says
+    doc2 = tmp_path / "docs2" / "results.md"
+    report = run_eval(EvalConfig(out=str(tmp_path / "eval"), tables="table2", preset="gpu", doc=str(doc2),
+                                 figures=1, report_only=True, progress=False))  # fmt: skip
+    assert report["doc"] == doc2 and "Table 3" in doc2.read_text() and "Table 2" not in doc2.read_text()
+    assert "--preset tiny" in doc2.read_text() and "--report-only" not in doc2.read_text()
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")} == stamps
+    with pytest.raises(ValueError, match="no stored evaluation"):
+        run_eval(EvalConfig(out=str(tmp_path / "nothing"), report_only=True, progress=False))
     with pytest.raises(ValueError, match="unknown table"):
         run_eval(EvalConfig(data=str(data), tables="table9", progress=False))
 

@@ -6,8 +6,10 @@ For each object the shared stages (validate, prepare_views, lmrm) run once into 
 TTO variant of the chosen tables (`eval/variants.py`; variants with identical settings, e.g. Table 2 (f) and Table 3
 (c), run once) is scored by `harness.evaluate_variant` and stored as `OUT/results/<object>/<variant>.json`, so a
 stopped run resumes where it was and finished pairs are never redone. When every pair is done (or with
-`--allow-incomplete`), `write_results` aggregates mean and std over objects into the tables of `docs/results.md`
-with the orderings the paper claims checked one by one, the hand-written discussion in `results-discussion.md`
+`--allow-incomplete`; `--out OUT --report-only` writes the page of a stopped or running evaluation from what is
+stored, with that run's settings), `write_results` aggregates mean and std over the objects that have every variant
+into the tables of `docs/results.md` with the orderings the paper claims checked one by one (paired differences with
+standard errors), the hand-written discussion in `results-discussion.md`
 beside the page (when present), figure grids (reference, ours, PBR baseline; base colour,
 latents, LMRM uncertainty) under `docs/results/`, and the exact command and commit.
 """
@@ -17,9 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import shlex
 import subprocess
-import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from neumatex_core.config import option
+from neumatex_core.config import command_line, option
 from neumatex_core.eval.harness import TRUTH
 from neumatex_core.eval.variants import TABLES, VARIANTS
 
@@ -78,6 +78,8 @@ class EvalConfig:
     doc: str = option("docs/results.md", "the results page to write ('': none); figures go beside it")
     figures: int = option(4, "objects shown in the figure grid")
     allow_incomplete: bool = option(False, "write the page from the finished pairs even if some are missing")
+    report_only: bool = option(False, "run nothing: write the page from the results stored so far (of a stopped or "
+                                      "still running evaluation)")
     progress: bool = option(True, "show a progress bar")
 
 
@@ -146,9 +148,16 @@ def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], ru
 
 
 def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
-    """Run (or resume) the evaluation; returns {'objects', 'complete', 'doc'}. See the module docstring."""
+    """Run (or resume) the evaluation; returns {'objects', 'finished', 'complete', 'doc'}. See the module docstring."""
     from neumatex_core.pipeline import ExtractConfig
 
+    if cfg.report_only:  # the page describes the stored run: take its settings (eval.json), not this command's
+        stored = Path(cfg.out) / "eval.json"
+        if not stored.is_file():
+            raise ValueError(f"{stored}: no stored evaluation to report on (run `neumatex eval` first)")
+        settings = json.loads(stored.read_text())["config"]
+        keep = {"out": cfg.out, "doc": cfg.doc, "figures": cfg.figures, "report_only": True}
+        cfg = EvalConfig(**{**{k: v for k, v in settings.items() if k in EvalConfig.__dataclass_fields__}, **keep})
     data, out = Path(cfg.data), Path(cfg.out)
     objects = select_objects(data, cfg.objects)
     tables = [t.strip() for t in cfg.tables.split(",") if t.strip()]
@@ -161,15 +170,16 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
 
         config = replace(config, tto=replace(config.tto, steps=cfg.steps))
     out.mkdir(parents=True, exist_ok=True)
-    (out / "eval.json").write_text(json.dumps({"config": cfg.__dict__, "extract": config.to_dict(),
-                                               "objects": objects, "runs": runs}, indent=1))  # fmt: skip
+    if not cfg.report_only:
+        (out / "eval.json").write_text(json.dumps({"config": cfg.__dict__, "extract": config.to_dict(),
+                                                   "objects": objects, "runs": runs}, indent=1))  # fmt: skip
     figure_objects = set(objects[:: max(1, len(objects) // max(1, cfg.figures))][: cfg.figures])
     total = len(objects) * len(runs)
     finished = sum((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
-    if progress:
+    if progress and not cfg.report_only:
         progress(finished, total, "")
     jobs = [(cfg.data, o, cfg.out, config.to_dict(), runs, cfg.render_views, relight, o in figure_objects,
-             cfg.threads) for o in objects]  # fmt: skip
+             cfg.threads) for o in objects] if not cfg.report_only else []  # fmt: skip
     if cfg.workers <= 1:
         for job in jobs:
             for variant, _ in _evaluate_object(*job):
@@ -190,9 +200,10 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
                 finished = now
     complete = all((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
     doc = None
-    if cfg.doc and (complete or cfg.allow_incomplete):
+    if cfg.doc and (complete or cfg.allow_incomplete or cfg.report_only):
         doc = write_results(cfg, objects, tables, canon, Path(cfg.doc))
-    return {"objects": len(objects), "complete": complete, "doc": doc}
+    finished = sum(all((out / "results" / o / f"{v}.json").is_file() for v in runs) for o in objects)
+    return {"objects": len(objects), "finished": finished, "complete": complete, "doc": doc}
 
 
 # -- the results page -------------------------------------------------------------------------------------------
@@ -366,10 +377,12 @@ def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
 def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon: dict[str, str], doc: Path) -> Path:
     """docs/results.md (and the figure grid beside it) from the stored results; returns the page's path."""
     out = Path(cfg.out)
-    res = load_results(out, objects, canon)
+    runs = set(canon.values()) | {TRUTH}
+    # only objects with every variant: rows of a partial page then compare the same objects
+    finished = [o for o in objects if all((out / "results" / o / f"{v}.json").is_file() for v in runs)]
+    res = load_results(out, finished, canon)
     n_done = {name: len(rows["psnr_pathtrace"]) for name, rows in res.items()}
-    command = "neumatex eval " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 1 and \
-        sys.argv[1] == "eval" else f"neumatex eval {cfg.data} --objects {cfg.objects} --preset {cfg.preset}"
+    command = command_line("neumatex eval", cfg, skip=("progress", "report_only", "allow_incomplete"))
     lines = [
         "# Results: the paper's tables on our benchmark",
         "",
@@ -381,7 +394,8 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         command,
         "```",
         "",
-        f"Objects: {len(objects)} of the benchmark split `{cfg.data}` ({', '.join(o[-3:] for o in objects)}); "
+        f"Objects: {len(finished)} of the benchmark split `{cfg.data}` ({', '.join(o[-3:] for o in finished)})"
+        + (f", finished out of the {len(objects)} selected" if len(finished) < len(objects) else "") + "; "
         "numbers are mean ± std over objects. PSNR PathTrace: tonemapped renders of the "
         f"{cfg.render_views} orbital views vs the object's photos at the photos' sample count (covered pixels); "
         "BaseColor / Latents: the G-buffers of the 23 preset views vs ground truth; Relight: frames "
@@ -440,7 +454,7 @@ def run_eval_command(cfg: EvalConfig) -> int:
     if bar is not None:
         bar.close()
     if result["doc"]:
-        print(f"wrote {result['doc']} ({result['objects']} objects)")
+        print(f"wrote {result['doc']} ({result['finished']} of {result['objects']} objects finished)")
     elif not result["complete"]:
         print("evaluation incomplete; rerun to resume (or --allow-incomplete to write the page now)")
     return 0
