@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shlex
 import types
 import typing
 from typing import Any, TypeVar
@@ -78,8 +79,6 @@ def config_from_args(cls: type[C], ns: argparse.Namespace) -> C:
 def command_line(program: str, config: Any, skip: tuple[str, ...] = ()) -> str:
     """The shell command that rebuilds `config` (a config dataclass instance) through `add_config_arguments`:
     positional fields first, then every other field that differs from its default, except those in `skip`."""
-    import shlex
-
     words, flags = [program], []
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)

@@ -147,6 +147,16 @@ def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], ru
     return done
 
 
+def _stored_pairs(out: Path, objects: list[str], runs: list[str]) -> int:
+    """How many (object, run) results are stored (the progress bar's count)."""
+    return sum((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
+
+
+def finished_objects(out: Path, objects: list[str], runs: list[str] | set[str]) -> list[str]:
+    """The objects of `objects` that have a stored result for every run in `runs`."""
+    return [o for o in objects if all((out / "results" / o / f"{v}.json").is_file() for v in runs)]
+
+
 def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
     """Run (or resume) the evaluation; returns {'objects', 'finished', 'complete', 'doc'}. See the module docstring."""
     from neumatex_core.pipeline import ExtractConfig
@@ -175,7 +185,7 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
                                                    "objects": objects, "runs": runs}, indent=1))  # fmt: skip
     figure_objects = set(objects[:: max(1, len(objects) // max(1, cfg.figures))][: cfg.figures])
     total = len(objects) * len(runs)
-    finished = sum((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
+    finished = _stored_pairs(out, objects, runs)
     if progress and not cfg.report_only:
         progress(finished, total, "")
     jobs = [(cfg.data, o, cfg.out, config.to_dict(), runs, cfg.render_views, relight, o in figure_objects,
@@ -194,16 +204,16 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
                 done, pending = wait(pending, timeout=10, return_when=FIRST_COMPLETED)
                 for fut in done:
                     fut.result()  # a worker's exception stops the run here (finished pairs stay stored)
-                now = sum((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
+                now = _stored_pairs(out, objects, runs)
                 if progress and now != finished:
                     progress(now, total, "")
                 finished = now
-    complete = all((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
+    finished_objs = finished_objects(out, objects, runs)
+    complete = len(finished_objs) == len(objects)
     doc = None
     if cfg.doc and (complete or cfg.allow_incomplete or cfg.report_only):
         doc = write_results(cfg, objects, tables, canon, Path(cfg.doc))
-    finished = sum(all((out / "results" / o / f"{v}.json").is_file() for v in runs) for o in objects)
-    return {"objects": len(objects), "finished": finished, "complete": complete, "doc": doc}
+    return {"objects": len(objects), "finished": len(finished_objs), "complete": complete, "doc": doc}
 
 
 # -- the results page -------------------------------------------------------------------------------------------
@@ -280,8 +290,8 @@ def orderings(res: Results) -> list[tuple[str, bool | None, str]]:
     add("neural material beats the PBR baseline on PathTrace by a wide margin (>= 1 dB)",
         None if math.isnan(d[0]) else d[0] >= 1.0,
         _fmt_diff("ours - PBR", d) + "; headroom: " + _fmt_diff("ground-truth material - PBR", headroom)
-        + "; with the noise taken out (median, approx.): ours {:.1f}, PBR {:.1f} dB".format(
-            bias_only_psnr(res, "ours")[0], bias_only_psnr(res, "pbr")[0]))
+        + f"; with the noise taken out (median, approx.): ours {bias_only_psnr(res, 'ours')[0]:.1f}, "
+        f"PBR {bias_only_psnr(res, 'pbr')[0]:.1f} dB")
     for rnd, lmrm, label in (("t2a_uv", "t2b_uv_lmrm", "UV"), ("t2d_triplane", "t2e_triplane_lmrm", "triplane")):
         diffs = {m: paired_difference(res, lmrm, rnd, m) for m in ("psnr_basecolor", "psnr_latents",
                                                                     "psnr_pathtrace")}
@@ -377,9 +387,8 @@ def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
 def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon: dict[str, str], doc: Path) -> Path:
     """docs/results.md (and the figure grid beside it) from the stored results; returns the page's path."""
     out = Path(cfg.out)
-    runs = set(canon.values()) | {TRUTH}
     # only objects with every variant: rows of a partial page then compare the same objects
-    finished = [o for o in objects if all((out / "results" / o / f"{v}.json").is_file() for v in runs)]
+    finished = finished_objects(out, objects, set(canon.values()) | {TRUTH})
     res = load_results(out, finished, canon)
     n_done = {name: len(rows["psnr_pathtrace"]) for name, rows in res.items()}
     command = command_line("neumatex eval", cfg, skip=("progress", "report_only", "allow_incomplete"))
