@@ -467,7 +467,7 @@ def _gbuffer_images(field_gbuffer: Callable[[torch.Tensor], torch.Tensor], mesh:
                  ("latent 3-5", image((g[:, 6:9] + 1) / 2))]  # fmt: skip
         if unc is not None:
             sd = torch.exp(0.5 * unc(pts).cpu()).mean(-1, keepdim=True)
-            items.append(("LMRM std (mean over channels, x4)", image((4 * sd).clamp(0, 1).expand(-1, 3))))
+            items.append(("std, mean over channels, x4", image((4 * sd).clamp(0, 1).expand(-1, 3))))
     return items
 
 

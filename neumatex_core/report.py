@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import html
 import json
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,12 +17,11 @@ import numpy as np
 
 from neumatex_core.imageio import write_image
 from neumatex_core.lmrm.plots import line_chart
-from neumatex_core.render.views import contact_sheet
 
 
 @dataclass
 class ReportContent:
-    """title; images: caption -> display image [H, W, 3] in [0, 1] (tiled per section); history: TTO rows;
+    """title; images: caption -> display image [H, W, 3] in [0, 1] (a captioned grid per section); history: TTO rows;
     metrics, timings, settings: flat tables; notes: sentences shown at the top."""
 
     title: str
@@ -47,29 +45,22 @@ def _table(rows: dict[str, Any]) -> str:
     return f"<table>{body}</table>"
 
 
-def _sheet(images: Sequence[np.ndarray], columns: int) -> np.ndarray:
-    h = max(img.shape[0] for img in images)
-    w = max(img.shape[1] for img in images)
-    padded = []
-    for img in images:
-        canvas = np.ones((h, w, 3), dtype=np.float32)
-        canvas[:img.shape[0], :img.shape[1]] = np.clip(img[:, :, :3], 0, 1)
-        padded.append(canvas)
-    return contact_sheet(padded, columns=columns)
-
-
 def write_report(content: ReportContent, folder: Path) -> Path:
-    """Write folder/index.html, one PNG per section, curves.png and history.json; returns the HTML path."""
+    """Write folder/index.html, one captioned PNG per image, curves.png and history.json; returns the HTML path."""
     folder.mkdir(parents=True, exist_ok=True)
     parts = [f"<h1>{html.escape(content.title)}</h1>"]
     parts += [f"<p>{html.escape(n)}</p>" for n in content.notes]
     for name, items in content.sections.items():
         if not items:
             continue
-        png = f"{_slug(name)}.png"
-        write_image(folder / png, _sheet([img for _, img in items], columns=min(len(items), 6)))
-        captions = ", ".join(html.escape(c) for c, _ in items)
-        parts.append(f"<h2>{html.escape(name)}</h2><img class='sheet' src='{png}'><p class='cap'>{captions}</p>")
+        # one PNG per tile, each under its own caption, so a reader never has to count tiles in a sheet
+        figures = []
+        for i, (caption, img) in enumerate(items):
+            png = f"{_slug(name)}-{i:02d}.png"
+            write_image(folder / png, np.clip(img[:, :, :3], 0, 1).astype(np.float32))
+            figures.append(f"<figure><img src='{png}' alt='{html.escape(caption)}'>"
+                           f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+        parts.append(f"<h2>{html.escape(name)}</h2><div class='grid'>{''.join(figures)}</div>")
     if content.history:
         steps = [r["step"] for r in content.history]
         line_chart([
@@ -85,7 +76,8 @@ def write_report(content: ReportContent, folder: Path) -> Path:
         if rows:
             parts.append(f"<h2>{name}</h2>{_table(rows)}")
     style = ("body{font-family:sans-serif;margin:2em;max-width:1200px} img{image-rendering:pixelated;max-width:100%}"
-             " .sheet{width:100%}"
+             " .grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(150px,1fr));gap:8px}"
+             " figure{margin:0} figure img{width:100%} figcaption{color:#555;font-size:80%}"
              " table{border-collapse:collapse} th,td{border:1px solid #ccc;padding:2px 8px;text-align:left}"
              " .cap{color:#555;font-size:90%}")  # fmt: skip
     page = (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(content.title)}</title>"

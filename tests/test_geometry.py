@@ -26,6 +26,26 @@ def test_normalized_mesh_fits_unit_sphere():
     assert np.abs(centre).max() < 1e-5
 
 
+def test_surface_samples_are_area_uniform_and_carry_uvs():
+    # two triangles in the plane z = 0 with areas 1 and 3: the counts follow the areas within binomial noise
+    v = np.array([[0, 0, 0], [2, 0, 0], [0, 1, 0], [0, 0, 0], [-3, 0, 0], [0, -2, 0]], np.float32)
+    uvs = np.array([[0, 0], [1, 0], [0, 1], [0, 0], [1, 0], [0, 1]], np.float32)
+    mesh = Mesh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int64), uvs=uvs)
+    n = 20000
+    points, uv = mesh.sample_surface(n, seed=5)
+    assert points.shape == (n, 3) and uv is not None and uv.shape == (n, 2)
+    assert float(points[:, 2].abs().max()) == 0.0
+    first = points[:, 0] >= 0
+    share, se = float(first.float().mean()), (0.25 * 0.75 / n) ** 0.5
+    assert abs(share - 0.25) < 4 * se
+    # uv x is a barycentric coordinate: density 2(1 - u) over a uniform triangle, mean 1/3, variance 1/18
+    assert abs(float(uv[:, 0].mean()) - 1 / 3) < 4 * (1 / 18 / n) ** 0.5
+    assert float(uv.sum(1).max()) <= 1 + 1e-6 and float(uv.min()) >= 0
+    again, _ = mesh.sample_surface(n, seed=5)
+    assert torch.equal(points, again) and mesh.flat().sample_surface(4)[1] is not None
+    assert Mesh(v, mesh.faces).sample_surface(4)[1] is None
+
+
 def test_broken_meshes_are_rejected_with_file_name(tmp_path):
     empty = tmp_path / "empty.obj"
     empty.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -91,7 +92,13 @@ def test_stages_are_idempotent_and_resume_after_an_interruption(tmp_path, tiny_l
     asset = read_asset(out)
     assert asset.field_kind == "triplane" and set(asset.decoders) == {"material", "uncertainty", "pbr"}
     assert asset.metrics["tto_steps"] == cfg.tto.steps and "psnr_photos" in asset.metrics
-    assert (out / "report" / "index.html").is_file() and (out / "report" / "curves.png").is_file()
+    page = (out / "report" / "index.html").read_text()
+    assert (out / "report" / "curves.png").is_file()
+    # every G-buffer tile under its own caption, its PNG beside the page
+    for caption in ("view 0 ours base colour", "view 0 LMRM base colour", "view 4 LMRM std, mean over channels, x4"):
+        assert f"<figcaption>{caption}" in page, caption
+    for src in re.findall(r"<img src='([^']+)'", page):
+        assert (out / "report" / src).is_file(), src
 
 
 def test_bad_capture_raises_a_pipeline_error_naming_the_file(tmp_path, tiny_lmrm):

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import numpy as np
 import torch
 
 from neumatex_core.fields.decoders import MaterialDecoder
@@ -58,10 +57,4 @@ def fit_triplane(points: torch.Tensor, target: Target, basis: NeuralBasis, chann
 
 def sample_surface(mesh: Mesh, n: int, seed: int = 0) -> torch.Tensor:
     """[n, 3] float32 points uniformly distributed over the mesh's area (deterministic in seed)."""
-    rng = np.random.default_rng(seed)
-    v = mesh.vertices[mesh.faces].astype(np.float64)
-    area = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    tri = rng.choice(len(area), size=n, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
-    b = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
-    return torch.from_numpy((b[:, :, None] * v[tri]).sum(1).astype(np.float32))
+    return mesh.sample_surface(n, seed)[0]

@@ -80,14 +80,4 @@ class PhotoSet:
 
 def surface_samples(mesh: Mesh, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
     """n area-uniform points [n, 3] on the mesh and their uvs [n, 2] (None without mesh uvs); deterministic."""
-    rng = np.random.default_rng(seed)
-    v = mesh.vertices[mesh.faces].astype(np.float64)
-    area = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    tri = rng.choice(len(area), size=n, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
-    b = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
-    points = torch.from_numpy((b[:, :, None] * v[tri]).sum(1).astype(np.float32))
-    if mesh.uvs is None:
-        return points, None
-    uv = mesh.uvs[mesh.faces[tri]].astype(np.float64)
-    return points, torch.from_numpy((b[:, :, None] * uv).sum(1).astype(np.float32))
+    return mesh.sample_surface(n, seed)
