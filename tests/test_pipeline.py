@@ -9,6 +9,7 @@ import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from tto_fixtures import EXAMPLE
@@ -184,6 +185,8 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     page = doc.read_text()
     assert "Table 1" in page and "Table 3" in page and "oracle" in page and "holds" in page
     assert (doc.parent / "results" / "grid.png").is_file()
+    assert "![paired differences](results/differences.png)" in page
+    assert (doc.parent / "results" / "differences.png").stat().st_size > 0
     ours = json.loads((tmp_path / "eval" / "results" / "test-000000" / "ours.json").read_text())
     assert math.isfinite(ours["psnr_pathtrace"]) and ours["psnr_basecolor"] > 0
     truth = json.loads((tmp_path / "eval" / "results" / "test-000000" / "truth.json").read_text())
@@ -216,7 +219,7 @@ def test_resuming_with_other_settings_is_refused_naming_them(tmp_path, tiny_lmrm
 
 
 def test_orderings_use_paired_differences_with_standard_errors():
-    from neumatex_core.eval.suite import orderings, paired_difference
+    from neumatex_core.eval.suite import difference_rows, orderings, paired_difference
 
     # Two objects far apart in difficulty; ours beats PBR by 1.5 and 2.5 dB on them: paired mean 2.0,
     # std(ddof=1) 0.707, standard error 0.5. A third object has only PBR and must not enter the pair.
@@ -230,6 +233,32 @@ def test_orderings_use_paired_differences_with_standard_errors():
     assert all(ok is None for c, (ok, _) in claims.items() if "PBR" not in c)  # nothing else was measured
     res["pbr"]["psnr_pathtrace"] = {"a": 31.0, "b": 19.0}  # +0.5, +1.5: mean 1.0, se 0.5: within 2 se
     assert "not resolved" in dict((c, d) for c, _, d in orderings(res))[next(iter(claims))]
+    # the chart's rows carry the same per-object differences; unmeasured comparisons have none
+    rows = {r.label: r for r in difference_rows(res)}
+    assert sorted(rows["ours - PBR, PathTrace"].values) == pytest.approx([0.5, 1.5])
+    assert rows["ours - PBR, PathTrace"].thresholds == (1.0,)
+    assert sum(1 for r in rows.values() if r.values) == 1
+
+
+def test_difference_chart_draws_each_object_and_the_mean_bar(tmp_path):
+    from PIL import Image
+
+    from neumatex_core.eval.plots import LABEL_WIDTH, DifferenceRow, difference_chart
+
+    # resolved above zero (green bar), unresolved (grey), resolved below zero (red); the scale spans -3..3
+    rows = [DifferenceRow("up", [1.0, 2.0, 3.0], (1.0,)), DifferenceRow("flat", [-1.0, 1.0]),
+            DifferenceRow("down", [-3.0, -2.9, -3.1])]
+    difference_chart(rows, tmp_path / "d.png")
+    img = np.asarray(Image.open(tmp_path / "d.png").convert("RGB")).astype(int)
+    plot = img[:, LABEL_WIDTH:]
+
+    def where(colour: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+        return np.nonzero((plot == np.asarray(colour)).all(-1))
+
+    green, red, grey, orange = (where(c) for c in ((44, 160, 44), (214, 39, 40), (110, 110, 110), (255, 127, 14)))
+    assert all(w[0].size for w in (green, red, grey, orange))
+    assert green[0].max() < grey[0].min() and grey[0].max() < red[0].min()  # rows in order
+    assert green[1].min() > red[1].max()  # "up" above and right of "down"
 
 
 def test_bias_only_psnr_takes_the_reference_rows_noise_out():

@@ -32,6 +32,7 @@ import numpy as np
 
 from neumatex_core.config import command_line, option
 from neumatex_core.eval.harness import TRUTH
+from neumatex_core.eval.plots import DifferenceRow, difference_chart
 from neumatex_core.eval.variants import TABLES, VARIANTS
 
 METRICS = ("psnr_pathtrace", "psnr_basecolor", "psnr_latents", "psnr_relight", "tto_minutes")
@@ -243,14 +244,19 @@ def _fmt(values: dict[str, float]) -> str:
     return f"{arr.mean():.2f} ± {arr.std():.2f}"
 
 
+def paired_values(res: Results, a: str, b: str, metric: str, metric_b: str = "") -> dict[str, float]:
+    """object -> `metric` of `a` minus `metric_b` (default `metric`) of `b`, over the objects both have (dB)."""
+    va, vb = res.get(a, {}).get(metric, {}), res.get(b, {}).get(metric_b or metric, {})
+    return {o: va[o] - vb[o] for o in va if o in vb}
+
+
 def paired_difference(res: Results, a: str, b: str, metric: str, metric_b: str = "") -> tuple[float, float, int]:
     """Mean of `a - b` (`metric` of `a` minus `metric_b`, default `metric`, of `b`) over the objects both have, its
     standard error and the number of objects.
 
     Paired because the spread between objects (about 2 dB: some objects are harder) is much larger than the
     spread of one variant's advantage over another; the standard error is std(d, ddof=1) / sqrt(n)."""
-    va, vb = res.get(a, {}).get(metric, {}), res.get(b, {}).get(metric_b or metric, {})
-    d = np.asarray([va[o] - vb[o] for o in va if o in vb])
+    d = np.asarray(list(paired_values(res, a, b, metric, metric_b).values()))
     if d.size == 0:
         return math.nan, math.nan, 0
     se = float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else math.nan
@@ -313,6 +319,26 @@ def orderings(res: Results) -> list[tuple[str, bool | None, str]]:
         None if math.isnan(gap[0]) else gap[0] <= 2.0,
         _fmt_diff("ours PathTrace - Relight", gap) + "; " + _fmt_diff("the ground-truth material's", truth_gap))
     return checks
+
+
+def difference_rows(res: Results) -> list[DifferenceRow]:
+    """The comparisons behind `orderings`, per object, for the paired-difference chart."""
+    bc, lat, pt = "psnr_basecolor", "psnr_latents", "psnr_pathtrace"
+    spec: list[tuple[str, str, str, str, str, tuple[float, ...]]] = [
+        ("ours - PBR, PathTrace", "ours", "pbr", pt, "", (1.0,)),
+        ("ground truth - PBR, PathTrace (headroom)", TRUTH, "pbr", pt, "", ()),
+        *[(f"LMRM - random init, {label}, {LABELS[m]}", lmrm, rnd, m, "", ())
+          for rnd, lmrm, label in (("t2d_triplane", "t2e_triplane_lmrm", "triplane"), ("t2a_uv", "t2b_uv_lmrm", "UV"))
+          for m in (bc, lat, pt)],
+        *[(f"unc. reg - none, {label}, {LABELS[m]}", unc, none, m, "", ())
+          for unc, none, label in (("t3c_unc", "t3b_no_reg", "triplane"), ("t2c_uv_lmrm_unc", "t2b_uv_lmrm", "UV"))
+          for m in (bc, lat)],
+        *[(f"oracle - ours, {LABELS[m]}", "t3d_oracle", "t3c_unc", m, "", (-1.0, 1.0)) for m in (bc, lat, pt)],
+        ("ours: PathTrace - Relight", "ours", "ours", pt, "psnr_relight", (2.0,)),
+        ("ground truth: PathTrace - Relight", TRUTH, TRUTH, pt, "psnr_relight", (2.0,)),
+    ]  # fmt: skip
+    return [DifferenceRow(label, list(paired_values(res, a, b, m, mb).values()), thr)
+            for label, a, b, m, mb, thr in spec]
 
 
 def _git_commit() -> str:
@@ -428,7 +454,12 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     for claim, ok, detail in orderings(res):
         verdict = "not measured" if ok is None else ("holds" if ok else "**does not hold**")
         lines.append(f"- {claim}: {verdict} ({detail})")
-    lines.append("")
+    chart, diff_rows = doc.parent / "results" / "differences.png", [r for r in difference_rows(res) if r.values]
+    if diff_rows:
+        difference_chart(diff_rows, chart)
+        lines += ["Each comparison per object (PSNR of the first variant minus the second, dB) with its mean and 2 "
+                  "standard errors; orange ticks are the claims' thresholds:", "",
+                  f"![paired differences]({os.path.relpath(chart, doc.parent)})", ""]
     notes = doc.with_name(doc.stem + "-discussion.md")
     if notes.is_file():  # the hand-written reading of these numbers, kept beside the page and included in it
         lines += [notes.read_text().rstrip(), ""]
