@@ -186,6 +186,7 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     assert "Table 1" in page and "Table 3" in page and "oracle" in page and "holds" in page
     assert (doc.parent / "results" / "grid.png").is_file()
     assert "![paired differences](results/differences.png)" in page
+    assert "| dusty | 1 |" in page and "| fuzzy | 1 |" in page  # Table 1 by the example's two families
     assert (doc.parent / "results" / "differences.png").stat().st_size > 0
     ours = json.loads((tmp_path / "eval" / "results" / "test-000000" / "ours.json").read_text())
     assert math.isfinite(ours["psnr_pathtrace"]) and ours["psnr_basecolor"] > 0
@@ -238,6 +239,25 @@ def test_orderings_use_paired_differences_with_standard_errors():
     assert sorted(rows["ours - PBR, PathTrace"].values) == pytest.approx([0.5, 1.5])
     assert rows["ours - PBR, PathTrace"].thresholds == (1.0,)
     assert sum(1 for r in rows.values() if r.values) == 1
+
+
+def test_family_table_pairs_within_the_objects_of_each_family(tmp_path):
+    from neumatex_core.eval.suite import TRUTH, family_lines, object_families
+
+    for obj, fams in (("a", ["metal", "coated"]), ("b", ["metal"]), ("c", [])):
+        (tmp_path / obj).mkdir()
+        regions = [{"family": f} for f in fams]
+        (tmp_path / obj / "meta.json").write_text(json.dumps({"spec": {"material": {"regions": regions}}}))
+    families = object_families(tmp_path, ["a", "b", "c"])
+    assert families == {"a": ["coated", "metal"], "b": ["metal"]}
+    pt, bc = "psnr_pathtrace", "psnr_basecolor"
+    res = {"ours": {pt: {"a": 21.0, "b": 23.0}, bc: {"a": 15.0, "b": 16.0}},
+           "pbr": {pt: {"a": 20.0, "b": 24.0}, bc: {"a": 12.0, "b": 13.0}},
+           TRUTH: {pt: {"a": 22.0, "b": 25.0}, bc: {}}}
+    rows = {line.split(" | ")[0].strip("| "): line for line in family_lines(res, families)[2:]}
+    # coated: object a alone (+1); metal: a and b, differences +1 and -1: mean 0, std 1.414, se 1
+    assert rows["coated"] == "| coated | 1 | +1.00 | +2.00 | +3.00 |"
+    assert rows["metal"] == "| metal | 2 | +0.00 ± 1.00 | +1.50 ± 0.50 | +3.00 ± 0.00 |"
 
 
 def test_difference_chart_draws_each_object_and_the_mean_bar(tmp_path):
