@@ -493,6 +493,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     for claim, ok, detail in orderings(res):
         verdict = "not measured" if ok is None else ("holds" if ok else "**does not hold**")
         lines.append(f"- {claim}: {verdict} ({detail})")
+    lines.append("")
     chart, diff_rows = doc.parent / "results" / "differences.png", [r for r in difference_rows(res) if r.values]
     if diff_rows:
         difference_chart(diff_rows, chart)
