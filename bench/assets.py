@@ -44,7 +44,7 @@ from neumatex_core.assets.asset import MaterialAsset  # noqa: E402
 from neumatex_core.assets.render import render_asset  # noqa: E402
 from neumatex_core.capture.tonemap import Tonemap  # noqa: E402
 from neumatex_core.eval.metrics import psnr  # noqa: E402
-from neumatex_core.fields.fit import fit_triplane, sample_surface  # noqa: E402
+from neumatex_core.fields.fit import fit_triplane  # noqa: E402
 from neumatex_core.geometry.camera import preset_views  # noqa: E402
 from neumatex_core.geometry.gbuffer import render_gbuffer  # noqa: E402
 from neumatex_core.geometry.mesh import load_mesh  # noqa: E402
@@ -88,7 +88,7 @@ def make_object(spec: dict[str, Any], basis: NeuralBasis, texture: int) -> Mater
         return colors[0] * s + colors[1] * (1 - s), latents[0] * s + latents[1] * (1 - s)
 
     t0 = time.perf_counter()
-    field, mse = fit_triplane(sample_surface(mesh, 8000, seed=spec["seed"]), target, basis, channels=8,
+    field, mse = fit_triplane(mesh.sample_surface(8000, seed=spec["seed"])[0], target, basis, channels=8,
                               resolution=32, steps=200, batch=4096, seed=spec["seed"])  # fmt: skip
     distil = time.perf_counter() - t0
     return asset_from_triplane(spec["name"], mesh, field, resolution=texture,

@@ -10,7 +10,7 @@ from neumatex_core.assets import MaterialAsset, asset_from_triplane
 from neumatex_core.assets.pbr_fit import PBRFitConfig
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.eval.metrics import psnr
-from neumatex_core.fields.fit import fit_triplane, sample_surface
+from neumatex_core.fields.fit import fit_triplane
 from neumatex_core.geometry.camera import Camera, preset_views
 from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
@@ -42,7 +42,7 @@ def blended_target(basis: NeuralBasis, families: tuple[str, str], seed: int = 0)
 def make_asset(mesh: Mesh, basis: NeuralBasis, name: str = "test-object", resolution: int = 128,
                families: tuple[str, str] = ("plastic", "coated"), seed: int = 0, steps: int = 150,
                pbr: PBRFitConfig | None = None) -> MaterialAsset:
-    points = sample_surface(mesh, 6000, seed=seed)
+    points = mesh.sample_surface(6000, seed=seed)[0]
     field, mse = fit_triplane(points, blended_target(basis, families, seed), basis, channels=8, resolution=32,
                               steps=steps, batch=2048, seed=seed)
     return asset_from_triplane(name, mesh, field, resolution=resolution, pbr=pbr,

@@ -18,7 +18,7 @@ from neumatex_core.fields import (
     module_id,
     sample_uv,
 )
-from neumatex_core.fields.fit import fit_triplane, sample_surface
+from neumatex_core.fields.fit import fit_triplane
 from neumatex_core.geometry.mesh import Mesh, icosphere
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.materials.field import MaterialField
@@ -139,7 +139,7 @@ def test_uv_field_needs_uvs(basis):
 
 def test_fit_triplane_distils_a_known_material(basis):
     mesh = icosphere(2)
-    points = sample_surface(mesh, 4000, seed=0)
+    points = mesh.sample_surface(4000, seed=0)[0]
 
     def target(p):
         s = (p[:, 1:2] > 0).float()

@@ -192,6 +192,8 @@ def _extract_members(
             raise CaptureError(
                 [Problem(label, f"member {info.filename!r} unpacks to more bytes than allowed or declared")]
             ) from None
+        # zipfile raises NotImplementedError for a compression method it lacks (e.g. deflate64), RuntimeError for
+        # an encrypted member: both are the upload's problem, reported like a corrupt member
         except (zipfile.BadZipFile, NotImplementedError, RuntimeError, OSError, EOFError) as exc:
             raise CaptureError(
                 [Problem(label, f"member {info.filename!r} cannot be extracted ({exc})")]

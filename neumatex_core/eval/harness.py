@@ -73,9 +73,8 @@ def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: Ground
     if isinstance(params, PBRTriplane):
         return lambda p: torch.cat([params.gbuffer(p, None)[:, :3], torch.full((p.shape[0], 6), math.nan)], -1)
     # UV fields: read the texture at the uv of the nearest point of the unwrapped mesh's vertices' triangles.
-    from neumatex_core.tto.data import surface_samples
 
-    pool, pool_uv = surface_samples(uv_mesh, 1 << 16, seed=1)
+    pool, pool_uv = uv_mesh.sample_surface(1 << 16, seed=1)
     assert pool_uv is not None
 
     def uv_values(p: torch.Tensor) -> torch.Tensor:

@@ -53,6 +53,8 @@ def difference_chart(rows: Sequence[DifferenceRow], path: Path, width: int = 980
               "orange = the claim's threshold", fill="black")  # fmt: skip
     step = _nice_step(hi - lo)
     bottom = top + ROW_HEIGHT * len(rows)
+    for i in range(1, len(rows), 2):  # banded rows first, so the grid lies over them
+        draw.rectangle([0, top + ROW_HEIGHT * i, width, top + ROW_HEIGHT * (i + 1) - 1], fill=(247, 247, 247))
     for k in range(math.ceil(lo / step), math.floor(hi / step) + 1):
         t = k * step
         draw.line([px(t), top, px(t), bottom], fill=(120, 120, 120) if k == 0 else (225, 225, 225),
@@ -60,11 +62,6 @@ def difference_chart(rows: Sequence[DifferenceRow], path: Path, width: int = 980
         draw.text((px(t) - 10, bottom + 6), f"{t:+.3g}" if t else "0", fill="black")
     for i, row in enumerate(rows):
         yc = top + ROW_HEIGHT * i + ROW_HEIGHT / 2
-        if i % 2:
-            draw.rectangle([0, yc - ROW_HEIGHT / 2, width, yc + ROW_HEIGHT / 2 - 1], fill=(247, 247, 247))
-            for k in range(math.ceil(lo / step), math.floor(hi / step) + 1):  # redraw the grid over the band
-                draw.line([px(k * step), yc - ROW_HEIGHT / 2, px(k * step), yc + ROW_HEIGHT / 2 - 1],
-                          fill=(120, 120, 120) if k == 0 else (225, 225, 225), width=2 if k == 0 else 1)  # fmt: skip
         draw.text((8, yc - 6), row.label, fill="black")
         vals = np.asarray([v for v in row.values if math.isfinite(v)], dtype=np.float64)
         for j, v in enumerate(vals):  # a small deterministic vertical jitter so equal values stay visible

@@ -345,13 +345,10 @@ def family_lines(res: Results, families: dict[str, list[str]]) -> list[str]:
         keep = {o for o, fs in families.items() if family in fs}
         sub: Results = {v: {m: {o: x for o, x in per.items() if o in keep} for m, per in rows.items()}
                         for v, rows in res.items()}  # fmt: skip
-        cells = []
-        for a, m in (("ours", pt), (TRUTH, pt), ("ours", bc)):
-            mean, se, n = paired_difference(sub, a, "pbr", m)
-            cells.append("-" if n == 0 else f"{mean:+.2f} ± {se:.2f}" if n > 1 else f"{mean:+.2f}")
-        n_obj = len(paired_values(sub, "ours", "pbr", pt))
-        if n_obj:
-            lines.append(f"| {family} | {n_obj} | " + " | ".join(cells) + " |")
+        diffs = [paired_difference(sub, a, "pbr", m) for a, m in (("ours", pt), (TRUTH, pt), ("ours", bc))]
+        cells = ["-" if n == 0 else f"{mean:+.2f} ± {se:.2f}" if n > 1 else f"{mean:+.2f}" for mean, se, n in diffs]
+        if diffs[0][2]:  # objects with both ours and PBR PathTrace
+            lines.append(f"| {family} | {diffs[0][2]} | " + " | ".join(cells) + " |")
     return lines if len(lines) > 2 else []
 
 

@@ -6,7 +6,7 @@ triplane features into material G-buffers (DESIGN.md sections 1, 5).
   9 log-variances, PBR (base colour, roughness, metallic);
 - `TriplaneMaterialField` (neural_field.py): triplane + material decoder + neural basis -> NeuralMaterial;
 - `UVTextureField`, `PBRTextureField` (uv_textures.py): per-hit UV lookups of [H, W, 9] / [H, W, 5] textures;
-- `fit_triplane`, `sample_surface` (fit.py): distil a known per-point material into a triplane (test objects).
+- `fit_triplane` (fit.py): distil a known per-point material into a triplane (test objects).
 """
 
 from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id

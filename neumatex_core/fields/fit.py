@@ -14,7 +14,6 @@ import torch
 from neumatex_core.fields.decoders import MaterialDecoder
 from neumatex_core.fields.neural_field import TriplaneMaterialField
 from neumatex_core.fields.triplane import Triplane
-from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.materials.neural_basis import NeuralBasis
 
 Target = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
@@ -53,8 +52,3 @@ def fit_triplane(points: torch.Tensor, target: Target, basis: NeuralBasis, chann
         rho, lat = field.gbuffer(points)
         mse = float(((torch.cat([rho, (lat + 1) / 2], dim=-1) - want) ** 2).mean())
     return field, mse
-
-
-def sample_surface(mesh: Mesh, n: int, seed: int = 0) -> torch.Tensor:
-    """[n, 3] float32 points uniformly distributed over the mesh's area (deterministic in seed)."""
-    return mesh.sample_surface(n, seed)[0]

@@ -76,8 +76,3 @@ class PhotoSet:
             o, d = self.cameras[f].rays_for_pixels(xy[sel, 0], xy[sel, 1])
             origins[sel], directions[sel] = o, d
         return RayBatch(origins, directions, self.colour[idx], spp)
-
-
-def surface_samples(mesh: Mesh, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """n area-uniform points [n, 3] on the mesh and their uvs [n, 2] (None without mesh uvs); deterministic."""
-    return mesh.sample_surface(n, seed)

@@ -33,7 +33,7 @@ from neumatex_core.materials.neural_basis import NeuralBasis
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
 from neumatex_core.tto.config import TTOConfig
-from neumatex_core.tto.data import PhotoSet, surface_samples
+from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.loss import Anchor, oracle_weights, photometric_loss, regulariser, uncertainty_weights
 from neumatex_core.tto.params import PBRUV, NeuralTriplane, NeuralUV, Parametrisation, PBRTriplane
 
@@ -131,7 +131,7 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
         params = PBRTriplane(start, anchor_pred.pbr_decoder)
     anchor = None
     if config.reg != "none" and config.lambda_reg > 0:
-        points, uv = surface_samples(scene_mesh, config.reg_pool, seed=config.seed)
+        points, uv = scene_mesh.sample_surface(config.reg_pool, seed=config.seed)
         points = points.to(device)
         uv = None if uv is None else uv.to(device)
         with torch.no_grad():
