@@ -28,9 +28,10 @@ class ExtractCommandConfig:
     out: str = option("", "output asset folder (or .zip)")
     preset: Literal["cpu", "gpu", "tiny"] = option("cpu", "cpu: minutes on 2 cores; gpu: quality; tiny: seconds")
     work: str = option("", "folder for the stages' outputs (default: .<out name>.work beside --out); keep it to resume")
-    init: Literal["auto", "lmrm", "random"] = option(
-        "auto", "start the TTO from the LMRM's prediction (lmrm: fail without a usable LMRM checkpoint) or a random "
-        "triplane; auto: lmrm when the LMRM checkpoint loads, else random (and says so)")
+    init: Literal["auto", "lmrm", "pbr", "random"] = option(
+        "auto", "start the TTO from the LMRM's prediction (lmrm: fail without a usable LMRM checkpoint), from a PBR "
+        "fit (pbr: PBR TTO from the LMRM's PBR head first) or a random triplane; auto: pbr when the LMRM checkpoint "
+        "loads, else random (and says so)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
     steps: int = option(0, "TTO steps (0: the preset's)")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")

@@ -50,7 +50,7 @@ from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
 from neumatex_core.materials.neural_basis import load_basis
 from neumatex_core.tto.config import TTOConfig
 from neumatex_core.tto.data import PhotoSet
-from neumatex_core.tto.optimise import build_problem, optimise
+from neumatex_core.tto.pbr_start import solve
 
 STAGES = ("validate", "prepare_views", "lmrm", "tto", "export")
 DONE = "done.json"
@@ -85,7 +85,8 @@ ShouldStop = Callable[[], bool]
 @dataclass
 class ExtractConfig:
     """preset_name: the preset this config came from; tto: the TTO schedule and variant; init: "lmrm" (needs the
-    shipped LMRM checkpoint, or `lmrm_weights`) or "random"; view_resolution: size of the preset views made by
+    shipped LMRM checkpoint, or `lmrm_weights`), "pbr" (the same, and the neural TTO starts from a PBR fit; see
+    tto/pbr_start.py) or "random"; view_resolution: size of the preset views made by
     prepare_views (pixels); blend_k: photos blended per pixel when views are synthesised; texture_resolution: baked
     asset textures; preview_resolution / preview_spp: preview renders; eval_photos / eval_spp: photos re-rendered at
     export for the photo PSNR (0: none); lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the
@@ -94,7 +95,7 @@ class ExtractConfig:
 
     preset_name: str = "cpu"
     tto: TTOConfig = field(default_factory=TTOConfig)
-    init: Literal["lmrm", "random"] = "lmrm"
+    init: Literal["lmrm", "random", "pbr"] = "lmrm"
     view_resolution: int = 64
     blend_k: int = 3
     texture_resolution: int = 128
@@ -349,7 +350,7 @@ def _stage_lmrm(capture: Path, work: Path, config: ExtractConfig, progress: Prog
     try:
         lmrm: LMRM | None = _load_lmrm(config, device)
     except LMRMError as exc:
-        if config.init == "lmrm":
+        if config.init in ("lmrm", "pbr"):
             raise PipelineError(f"LMRM initialisation needs a trained LMRM checkpoint, which is not available: {exc}. "
                                 "Extract with init='random' (--init random) until the checkpoint ships.") from None
         lmrm = None
@@ -428,15 +429,14 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
         photos = _photo_set(norm, device)
         tonemap = cap.tonemap
     basis = load_basis(str(device))
-    problem = build_problem(tto, norm.mesh, norm.envmap, photos, tonemap, pred, basis,
-                            anchor_available=bool(record["trained"]))  # fmt: skip
     t0 = time.perf_counter()
 
     def on_step(step: int, total: int, row: dict[str, float]) -> None:
         _emit(progress, "tto", step / total, f"step {step}/{total} loss {row['loss']:.4g} PSNR {row['psnr']:.2f} dB",
               row)
 
-    result = optimise(problem, tto, on_step, should_stop, checkpoint=out / "checkpoint.pt")
+    result = solve(tto, norm.mesh, norm.envmap, photos, tonemap, pred, basis, anchor_available=bool(record["trained"]),
+                   progress=on_step, should_stop=should_stop, checkpoint_dir=out)  # fmt: skip
     if not result.finished:
         raise Cancelled(f"stopped at TTO step {result.steps_done}/{tto.steps}; the checkpoint {out / 'checkpoint.pt'} "
                         "resumes it")  # fmt: skip

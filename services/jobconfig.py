@@ -34,8 +34,8 @@ def build_config(preset: str, overrides: dict[str, Any]) -> ExtractConfig:
         kind = type(getattr(ExtractConfig.preset(preset), name))
         if kind in (int, float) and not isinstance(value, int | float) or kind is str and not isinstance(value, str):
             raise ValueError(f"config field {name!r} must be a {kind.__name__}, got {value!r}")
-    if cfg.init not in ("lmrm", "random"):
-        raise ValueError(f"config init must be 'lmrm' or 'random', got {cfg.init!r}")
+    if cfg.init not in ("lmrm", "random", "pbr"):
+        raise ValueError(f"config init must be 'lmrm', 'random' or 'pbr', got {cfg.init!r}")
     if cfg.device not in ("auto", "cpu", "cuda"):
         raise ValueError(f"config device must be 'auto', 'cpu' or 'cuda', got {cfg.device!r}")
     cfg.tto.check()

@@ -34,7 +34,7 @@ from neumatex_core.materials.neural_basis import load_basis
 from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
-from neumatex_core.tto import PhotoSet, build_problem, optimise
+from neumatex_core.tto import PhotoSet, solve
 from neumatex_core.tto.params import NeuralTriplane, Parametrisation, PBRTriplane
 
 
@@ -121,9 +121,8 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
         photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
                           [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
         truth = truth_lookup(gt) if tto.reg == "oracle" else None
-        problem = build_problem(tto, mesh, env, photos, cap.tonemap, pred, load_basis(), truth=truth)
-        result = optimise(problem, tto)
-        params, scene_mesh = result.params, problem.mesh
+        result = solve(tto, mesh, env, photos, cap.tonemap, pred, load_basis(), truth=truth)
+        params, scene_mesh = result.params, result.mesh or mesh
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     basis = load_basis()
     from neumatex_core.fields.neural_field import TriplaneMaterialField

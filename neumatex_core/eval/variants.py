@@ -28,6 +28,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "t3b_no_reg": {**OURS, "reg": "none"},
     "t3c_unc": OURS,
     "t3d_oracle": {**OURS, "reg": "oracle"},
+    "ours_pbr_start": {**OURS, "init": "pbr"},
+    "ours_pbr_start_no_reg": {**OURS, "init": "pbr", "reg": "none"},
 }
 
 TABLES: dict[str, list[str]] = {

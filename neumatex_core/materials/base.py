@@ -11,6 +11,11 @@ surface: `wi` towards the light, `wo` towards the viewer.
 - albedo(wo) -> [N, 3]: directional albedo, the integral of f cos over the hemisphere (approximate where
   a closed form does not exist; used for Russian roulette, previews and G-buffers).
 - select(index) -> Material: the same material restricted to some points (a bool mask or an index tensor).
+
+Optional split, used by the cached light transport (`render/transport_cache.py`): f = lambert(wo) / pi + glossy(wi,
+wo), where `lambert(wo)` [N, 3] is the albedo of the Lambertian part (it may depend on the viewer side, as T(wo)
+rho_d does) and `eval_glossy` the rest. The defaults (no Lambertian part, glossy = eval) are always correct; a
+material that overrides them lets a cache integrate its diffuse part once per pixel instead of once per sample.
 """
 
 from __future__ import annotations
@@ -40,6 +45,14 @@ class Material(ABC):
 
     @abstractmethod
     def select(self, index: torch.Tensor) -> Material: ...
+
+    def lambert(self, wo: torch.Tensor) -> torch.Tensor:
+        """[N, 3] albedo of the Lambertian part of f at viewer directions wo [N, 3] (see the module docstring)."""
+        return torch.zeros(wo.shape[0], 3, device=wo.device)
+
+    def eval_glossy(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        """[N, 3] f minus its Lambertian part lambert(wo) / pi (1/sr, no cosine; zero below the surface)."""
+        return self.eval(wi, wo)
 
 
 def cosine_sample(u: torch.Tensor) -> torch.Tensor:

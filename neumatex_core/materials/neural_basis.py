@@ -209,6 +209,13 @@ class NeuralMaterial(Material):
         diffuse = torch.where(above, t * self.base_color / math.pi, torch.zeros_like(t))
         return diffuse + self.basis.bsdf(self.latent, wi, wo)
 
+    def lambert(self, wo: torch.Tensor) -> torch.Tensor:
+        t, _ = self._transmission_reflectance(wo)
+        return torch.where((wo[:, 2] > 0).unsqueeze(-1), t * self.base_color, torch.zeros_like(t))
+
+    def eval_glossy(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        return self.basis.bsdf(self.latent, wi, wo)
+
     def mixture(self, wo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Detached (probabilities [N, 3] over {cosine, GGX 1, GGX 2}, widths [N, 2]) of `sample`."""
         with torch.no_grad():

@@ -60,6 +60,16 @@ class PBRMaterial(Material):
         diffuse = self.diffuse_albedo / torch.pi
         return torch.where(above, diffuse + fresnel * spec.unsqueeze(-1), torch.zeros_like(diffuse))
 
+    def lambert(self, wo: torch.Tensor) -> torch.Tensor:
+        above = (wo[:, 2] > 0).unsqueeze(-1)
+        return torch.where(above, self.diffuse_albedo, torch.zeros_like(self.diffuse_albedo))
+
+    def eval_glossy(self, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        spec, cos_oh = ggx_eval(wi, wo, self.alpha)
+        fresnel = schlick_fresnel(self.f0, cos_oh)
+        above = ((wi[:, 2] > 0) & (wo[:, 2] > 0)).unsqueeze(-1)
+        return torch.where(above, fresnel * spec.unsqueeze(-1), torch.zeros_like(fresnel))
+
     def _spec_probability(self, wo: torch.Tensor) -> torch.Tensor:
         """[N] probability of sampling the GGX lobe: its Fresnel-weighted share of the albedo."""
         with torch.no_grad():

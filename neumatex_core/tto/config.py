@@ -4,10 +4,15 @@ Presets: "cpu" (the default: a few minutes per object on 2 cores), "gpu" (qualit
 more bounces) and "tiny" (tests: seconds). The switches select the paper's variants:
 
 - field: "triplane" (ours) or "uv" (latent UV textures on an xatlas unwrap; ablation);
-- init: "lmrm" (the LMRM's triplane) or "random" (a random triplane, same frozen decoders; ablation);
+- init: "lmrm" (the LMRM's triplane), "random" (a random triplane, same frozen decoders; ablation) or "pbr" (first
+  `pbr_steps` steps of the PBR baseline's TTO from the LMRM's PBR head, then the neural triplane starts from that
+  PBR solution expressed in the basis, `tto/pbr_start.py`; neural triplane only);
 - reg: "uncertainty" (ours: weights exp(-log_var) of the LMRM), "none", or "oracle" (weights 1 / squared error of
   the LMRM G-buffers against ground truth; needs a synthetic object's ground truth);
-- material: "neural" (ours) or "pbr" (the NVDiffRecMC++ baseline: the same loop with the LMRM's PBR head).
+- material: "neural" (ours) or "pbr" (the NVDiffRecMC++ baseline: the same loop with the LMRM's PBR head);
+- estimator: "cached" (default: the light transport of `cache_pixels` photo pixels is cached every `cache_every`
+  steps, `render/transport_cache.py`, and each step re-evaluates only the material) or "path" (every step path
+  traces its pixels: the reference estimator, slower and noisier per CPU second).
 """
 
 from __future__ import annotations
@@ -18,9 +23,10 @@ from typing import Any, Literal
 from neumatex_core.config import check_known_keys
 
 FieldKind = Literal["triplane", "uv"]
-InitKind = Literal["lmrm", "random"]
+InitKind = Literal["lmrm", "random", "pbr"]
 RegKind = Literal["uncertainty", "none", "oracle"]
 MaterialKind = Literal["neural", "pbr"]
+EstimatorKind = Literal["cached", "path"]
 PRESETS = ("tiny", "cpu", "gpu")
 
 
@@ -32,6 +38,9 @@ class TTOConfig:
     for the anchor (drawn from a fixed pool of `reg_pool` area-uniform points); uv_resolution: texels of the UV
     ablation's textures; random_std: standard deviation of a random triplane; checkpoint_every: steps between
     checkpoints (0: only when stopped); seed: every random draw of step s depends only on (seed, s).
+    estimator "cached": each cache holds `cache_pixels` pixels x spp camera rays with `cache_directions` incident
+    directions per hit and is rebuilt (new pixels, new directions, indirect light of the current material) every
+    `cache_every` steps; a step draws its `pixels` pixels from the current cache.
 
     The loss is taken after the (concave) tonemap, so few samples per pixel bias it: the presets spend rays on
     spp >= 8 rather than on more pixels (docs/design-notes.md, item 21), and max_bounces should match the
@@ -55,36 +64,48 @@ class TTOConfig:
     init: InitKind = "lmrm"
     reg: RegKind = "uncertainty"
     material: MaterialKind = "neural"
+    estimator: EstimatorKind = "cached"
+    cache_pixels: int = 8192
+    cache_directions: int = 32
+    cache_every: int = 100
+    pbr_steps: int = 200
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:
         """'tiny', 'cpu' (default) or 'gpu', with field overrides."""
         if name == "tiny":
             base = cls(steps=12, pixels=128, spp=2, max_bounces=1, lr=0.05, reg_points=256, reg_pool=4096,
-                       uv_resolution=32, checkpoint_every=4)  # fmt: skip
+                       uv_resolution=32, checkpoint_every=4, cache_pixels=512, cache_directions=8, cache_every=6,
+                       pbr_steps=6)  # fmt: skip
         elif name == "cpu":
-            base = cls()
+            base = cls(spp=2)
         elif name == "gpu":
             base = cls(steps=3000, pixels=8192, spp=16, max_bounces=4, lr=0.01, reg_points=16384, reg_pool=1 << 18,
-                       uv_resolution=512, checkpoint_every=200)  # fmt: skip
+                       uv_resolution=512, checkpoint_every=200, cache_pixels=65536, cache_directions=64,
+                       cache_every=250)  # fmt: skip
         else:
             raise ValueError(f"unknown TTO preset {name!r} (expected one of {', '.join(PRESETS)})")
         return replace(base, **overrides)
 
     def check(self) -> None:
         """ValueError naming the first bad field."""
-        for name in ("steps", "pixels", "spp", "max_bounces", "reg_points", "reg_pool", "uv_resolution"):
+        for name in ("steps", "pixels", "spp", "max_bounces", "reg_points", "reg_pool", "uv_resolution",
+                     "cache_pixels", "cache_directions", "cache_every", "pbr_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TTO {name} must be >= 1, got {getattr(self, name)}")
         if not self.lr > 0 or not 0 < self.lr_final <= 1:
             raise ValueError(f"TTO lr must be > 0 and lr_final in (0, 1], got {self.lr} and {self.lr_final}")
         if self.lambda_reg < 0:
             raise ValueError(f"TTO lambda_reg must be >= 0, got {self.lambda_reg}")
-        choices = {"field": ("triplane", "uv"), "init": ("lmrm", "random"), "reg": ("uncertainty", "none", "oracle"),
-                   "material": ("neural", "pbr")}  # fmt: skip
+        choices = {"field": ("triplane", "uv"), "init": ("lmrm", "random", "pbr"),
+                   "reg": ("uncertainty", "none", "oracle"), "material": ("neural", "pbr"),
+                   "estimator": ("cached", "path")}  # fmt: skip
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise ValueError(f"TTO {name} must be one of {allowed}, got {getattr(self, name)!r}")
+        if self.init == "pbr" and (self.material != "neural" or self.field != "triplane"):
+            raise ValueError("TTO init='pbr' starts a neural triplane from a PBR fit: it needs material='neural' and "
+                             f"field='triplane', got {self.material!r} and {self.field!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -5,8 +5,10 @@ photos rendered through the differentiable path tracer, an uncertainty-weighted 
     result = optimise(problem, config, progress=..., should_stop=..., checkpoint=work / "checkpoint.pt")
 
 Every random draw of step s (pixels, jitter, paths, anchor points) comes from a generator seeded with
-(config.seed, s), and the learning rate is a function of s, so a run stopped after step s and resumed from its
-checkpoint gives the same tensor, bit for bit on one device, as an uninterrupted run.
+(config.seed, s), and the learning rate is a function of s; the transport cache (estimator "cached") is rebuilt at
+steps 0, cache_every, 2 cache_every, ... from the tensor of that step, which the checkpoint keeps. So a run stopped
+after step s and resumed from its checkpoint gives the same tensor, bit for bit on one device, as an uninterrupted
+run.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from neumatex_core.lmrm.inference import LMRMPrediction
 from neumatex_core.materials.neural_basis import NeuralBasis
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
+from neumatex_core.render.transport_cache import TransportCache, TransportCacheConfig
 from neumatex_core.tto.config import TTOConfig
 from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.loss import Anchor, oracle_weights, photometric_loss, regulariser, uncertainty_weights
@@ -39,7 +42,7 @@ from neumatex_core.tto.params import PBRUV, NeuralTriplane, NeuralUV, Parametris
 
 Progress = Callable[[int, int, dict[str, float]], None]
 Truth = Callable[[torch.Tensor], torch.Tensor]  # points [P, 3] -> ground-truth (rho_d, latent) [P, 9]
-CHECKPOINT_FORMAT = "nmx-tto-1"
+CHECKPOINT_FORMAT = "nmx-tto-2"
 
 
 @dataclass
@@ -59,13 +62,15 @@ class TTOProblem:
 @dataclass
 class TTOResult:
     """params: the optimised parametrisation; history: one row per step (step, loss, photo, reg, psnr, lr);
-    steps_done of config.steps; finished: False when stopped early; seconds: wall time of this call."""
+    steps_done of config.steps; finished: False when stopped early; seconds: wall time of this call; mesh: the
+    problem's mesh."""
 
     params: Parametrisation
     history: list[dict[str, float]] = field(default_factory=list)
     steps_done: int = 0
     finished: bool = False
     seconds: float = 0.0
+    mesh: Mesh | None = None  # the mesh the field lives on (xatlas-unwrapped for UV fields)
 
 
 def _neural_gbuffer(prediction: LMRMPrediction, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -92,11 +97,11 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
                          "LMRM): use reg='none'")  # fmt: skip
     if config.reg == "oracle" and (truth is None or config.material != "neural"):
         raise ValueError("TTO reg='oracle' needs ground-truth G-buffers (a synthetic object) and material='neural'")
-    if config.init == "lmrm" and not anchor_available:
-        raise ValueError("TTO init='lmrm' needs a trained LMRM's prediction; use init='random'")
+    if config.init in ("lmrm", "pbr") and not anchor_available:
+        raise ValueError(f"TTO init={config.init!r} needs a trained LMRM's prediction; use init='random'")
     with torch.no_grad():
         pred_planes = prediction.triplane.planes.detach().to(device)
-        if config.init == "lmrm":
+        if config.init in ("lmrm", "pbr"):
             planes = pred_planes.clone()
         else:
             g = torch.Generator().manual_seed(config.seed)
@@ -161,15 +166,17 @@ def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.
 
 
 def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametrisation,
-                     opt: torch.optim.Optimizer, history: list[dict[str, float]]) -> None:
+                     opt: torch.optim.Optimizer, history: list[dict[str, float]],
+                     cache_tensor: torch.Tensor | None) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
-                "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history}, tmp)
+                "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history,
+                "cache_tensor": None if cache_tensor is None else cache_tensor.cpu()}, tmp)  # fmt: skip
     os.replace(tmp, path)
 
 
 def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation,
-                     opt: torch.optim.Optimizer) -> tuple[int, list[dict[str, float]]]:
+                     opt: torch.optim.Optimizer) -> tuple[int, list[dict[str, float]], torch.Tensor | None]:
     try:
         state: dict[str, Any] = torch.load(path, map_location=params.tensor.device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - a torn or foreign file: start over rather than fail
@@ -179,7 +186,43 @@ def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation,
     with torch.no_grad():
         params.tensor.copy_(state["tensor"])
     opt.load_state_dict(state["optimizer"])
-    return int(state["step"]), list(state["history"])
+    cache_tensor = state.get("cache_tensor")
+    return int(state["step"]), list(state["history"]), None if cache_tensor is None else cache_tensor.to(params.tensor)
+
+
+class CachedPhotos:
+    """The estimator "cached": a TransportCache of `config.cache_pixels` random photo pixels (spp jittered rays
+    each), rebuilt every `config.cache_every` steps from the parametrisation's tensor at that step."""
+
+    def __init__(self, problem: TTOProblem, config: TTOConfig, scene: Scene) -> None:
+        self.problem, self.config, self.scene = problem, config, scene
+        self.cache_config = TransportCacheConfig(directions=config.cache_directions,
+                                                 indirect_bounces=config.max_bounces - 1)  # fmt: skip
+        self.cache: TransportCache | None = None
+        self.target = torch.empty(0)
+        self.tensor_at_build: torch.Tensor | None = None
+
+    def build(self, step: int, tensor: torch.Tensor) -> None:
+        """Cache the transport of round step // cache_every with the material of `tensor` (a copy of the
+        parametrisation's tensor at the round's first step)."""
+        params, cfg = self.problem.params, self.config
+        g = torch.Generator(device=self.problem.device).manual_seed(cfg.seed * 1_000_003 + 7_919 * (step + 1) + 1)
+        live = params.tensor.detach().clone()
+        with torch.no_grad():
+            params.tensor.copy_(tensor)
+            batch = self.problem.photos.batch(cfg.cache_pixels, cfg.spp, g)
+            self.cache = TransportCache.build(self.scene, batch.origins, batch.directions, g, self.cache_config)
+            params.tensor.copy_(live)
+        self.target, self.tensor_at_build = batch.target, tensor.detach().clone()
+
+    def loss(self, g: torch.Generator) -> torch.Tensor:
+        """L_photo of `config.pixels` pixels of the current cache."""
+        assert self.cache is not None
+        cfg = self.config
+        pix = torch.randint(0, cfg.cache_pixels, (cfg.pixels,), generator=g, device=self.problem.device)
+        rays = (pix.unsqueeze(-1) * cfg.spp + torch.arange(cfg.spp, device=pix.device)).reshape(-1)
+        radiance = self.cache.radiance(self.problem.params.field(), rays)
+        return photometric_loss(radiance, self.target[pix], cfg.spp, self.problem.tonemap)
 
 
 def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None = None,
@@ -191,24 +234,34 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     params = problem.params
     opt = torch.optim.Adam([params.tensor], lr=config.lr)
     step, history = 0, list[dict[str, float]]()
+    cache_tensor: torch.Tensor | None = None
     if checkpoint is not None and checkpoint.is_file():
-        step, history = _load_checkpoint(checkpoint, config, params, opt)
+        step, history, cache_tensor = _load_checkpoint(checkpoint, config, params, opt)
     scene = Scene(problem.mesh, problem.envmap, params.field(), device=problem.device)
     tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1),
                                          spp=config.spp))  # fmt: skip
+    cached = CachedPhotos(problem, config, scene) if config.estimator == "cached" else None
+    if cached is not None and step % config.cache_every != 0:  # resumed inside a round: its cache again
+        cached.build(step - step % config.cache_every, params.tensor if cache_tensor is None else cache_tensor)
     anchor = problem.anchor
     while step < config.steps:
         if should_stop is not None and should_stop():
             if checkpoint is not None:
-                _save_checkpoint(checkpoint, config, step, params, opt, history)
-            return TTOResult(params, history, step, False, time.perf_counter() - t0)
+                _save_checkpoint(checkpoint, config, step, params, opt, history,
+                                 None if cached is None else cached.tensor_at_build)  # fmt: skip
+            return TTOResult(params, history, step, False, time.perf_counter() - t0, problem.mesh)
         g = step_generator(config, step, problem.device)
         lr = learning_rate(config, step)
         for group in opt.param_groups:
             group["lr"] = lr
-        batch = problem.photos.batch(config.pixels, config.spp, g)
-        radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
-        photo = photometric_loss(radiance, batch.target, config.spp, problem.tonemap)
+        if cached is not None:
+            if step % config.cache_every == 0:
+                cached.build(step, params.tensor)
+            photo = cached.loss(g)
+        else:
+            batch = problem.photos.batch(config.pixels, config.spp, g)
+            radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
+            photo = photometric_loss(radiance, batch.target, config.spp, problem.tonemap)
         loss = photo
         reg = torch.zeros((), device=problem.device)
         if anchor is not None:
@@ -228,7 +281,9 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         if progress is not None:
             progress(step, config.steps, row)
         if checkpoint is not None and config.checkpoint_every and step % config.checkpoint_every == 0:
-            _save_checkpoint(checkpoint, config, step, params, opt, history)
+            _save_checkpoint(checkpoint, config, step, params, opt, history,
+                             None if cached is None else cached.tensor_at_build)  # fmt: skip
     if checkpoint is not None:
-        _save_checkpoint(checkpoint, config, step, params, opt, history)
-    return TTOResult(params, history, step, True, time.perf_counter() - t0)
+        _save_checkpoint(checkpoint, config, step, params, opt, history,
+                         None if cached is None else cached.tensor_at_build)  # fmt: skip
+    return TTOResult(params, history, step, True, time.perf_counter() - t0, problem.mesh)

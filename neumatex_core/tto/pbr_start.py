@@ -1,0 +1,95 @@
+"""Neural TTO that starts where PBR ends (init="pbr"; docs/design-notes.md, "neural from PBR").
+
+    result = solve(config, mesh, envmap, photos, tonemap, prediction, basis, checkpoint_dir=work / "tto")
+
+`solve` runs any TTO variant. With init="pbr" it runs two phases: the PBR baseline's TTO (the LMRM's PBR head and
+triplane, no anchor, `config.pbr_steps` steps, checkpoint `checkpoint_pbr.pt`), then the neural TTO from that
+solution: the neural triplane's planes are fitted (the material decoder frozen) so that its G-buffers equal the PBR
+field's base colour, roughness and metallic expressed in the basis (`materials/pbr_to_neural.py`) at area-uniform
+surface points, and the neural TTO goes on from there (`config.steps` steps, checkpoint `checkpoint.pt`). So the
+neural material begins at the PBR fit (up to the basis's and the fit's error, which the history records as
+`start_mse`) and the photos pull it towards the lobes PBR lacks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.geometry.mesh import Mesh
+from neumatex_core.lighting.envmap import EnvironmentMap
+from neumatex_core.lmrm.inference import LMRMPrediction
+from neumatex_core.materials.neural_basis import NeuralBasis
+from neumatex_core.materials.pbr_to_neural import pbr_to_neural
+from neumatex_core.tto.config import TTOConfig
+from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.optimise import Progress, Truth, TTOResult, build_problem, optimise
+from neumatex_core.tto.params import NeuralTriplane, PBRTriplane
+
+FIT_POINTS = 1 << 15  # area samples the start is fitted on
+FIT_STEPS = 300
+FIT_LR = 0.05
+
+
+def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis: NeuralBasis, seed: int = 0,
+                     steps: int = FIT_STEPS) -> float:
+    """Fit the planes of `neural` (in place; decoder frozen) to the PBR field `pbr` expressed in the basis; returns
+    the final mean squared G-buffer error on (rho_d, (latent + 1) / 2), the G-buffer metric's scale."""
+    points, _ = mesh.sample_surface(FIT_POINTS, seed=seed)
+    points = points.to(neural.tensor.device)
+    with torch.no_grad():
+        v = pbr.gbuffer(points, None)
+        rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
+        want = torch.cat([rho, (latent + 1) / 2], dim=-1)
+    opt = torch.optim.Adam([neural.tensor], lr=FIT_LR)
+    g = torch.Generator(device=points.device).manual_seed(seed)
+
+    def error(idx: torch.Tensor | None = None) -> torch.Tensor:
+        p, w = (points, want) if idx is None else (points[idx], want[idx])
+        got = neural.gbuffer(p, None)
+        return ((torch.cat([got[:, :3], (got[:, 3:] + 1) / 2], dim=-1) - w) ** 2).mean()
+
+    for step in range(steps):
+        for group in opt.param_groups:
+            group["lr"] = FIT_LR * 0.5 * (1 + torch.cos(torch.tensor(torch.pi * step / steps)).item())
+        idx = torch.randint(0, points.shape[0], (8192,), generator=g, device=points.device)
+        loss = error(idx)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        return float(error())
+
+
+def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
+          prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool = True, truth: Truth | None = None,
+          progress: Progress | None = None, should_stop: Callable[[], bool] | None = None,
+          checkpoint_dir: Path | None = None) -> TTOResult:
+    """Run the TTO variant `config` (see the module docstring); stopped and resumed like `optimise`."""
+    def checkpoint(name: str) -> Path | None:
+        return None if checkpoint_dir is None else Path(checkpoint_dir) / name
+
+    if config.init != "pbr":
+        problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
+        return optimise(problem, config, progress, should_stop, checkpoint("checkpoint.pt"))
+    total = config.pbr_steps + config.steps
+    pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps)
+    pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
+    pbr_progress = None if progress is None else (lambda s, _n, row: progress(s, total, {**row, "phase": 0.0}))
+    first = optimise(pbr_problem, pbr_config, pbr_progress, should_stop, checkpoint("checkpoint_pbr.pt"))
+    if not first.finished:
+        return first
+    neural_config = replace(config, init="lmrm")
+    problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
+    assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
+    start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed)
+    neural_progress = None if progress is None else (
+        lambda s, _n, row: progress(config.pbr_steps + s, total, {**row, "phase": 1.0}))
+    second = optimise(problem, neural_config, neural_progress, should_stop, checkpoint("checkpoint.pt"))
+    second.history = [*({**row, "phase": 0.0} for row in first.history),
+                      *({**row, "phase": 1.0, "start_mse": start_mse} for row in second.history)]
+    return second
