@@ -23,6 +23,7 @@ true raises Cancelled (checked between stages and between TTO steps; the TTO che
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -440,7 +441,11 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
     if not result.finished:
         raise Cancelled(f"stopped at TTO step {result.steps_done}/{tto.steps}; the checkpoint {out / 'checkpoint.pt'} "
                         "resumes it")  # fmt: skip
-    save_file({"tensor": result.params.tensor.detach().cpu().contiguous()}, str(out / "result.safetensors"))
+    tensors = {"tensor": result.params.tensor.detach().cpu().contiguous()}
+    if result.params.decoder_parameters():  # train_decoder: the fine-tuned material decoder goes with the planes
+        for k, v in result.params.decoder.state_dict().items():  # type: ignore[union-attr]
+            tensors[f"decoder.{k}"] = v.detach().cpu().float().contiguous()
+    save_file(tensors, str(out / "result.safetensors"))
     _write_json_atomic(out / "history.json", result.history)
     tail = result.history[-max(1, len(result.history) // 10):]
     return {"steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),
@@ -487,7 +492,14 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
     tto = effective_tto(config, bool(record["trained"]))
     if tto.material != "neural":
         raise PipelineError("material='pbr' is the PBR baseline for evaluation; an asset holds a neural material")
-    tensor = load_file(str(stage_dir(work, "tto") / "result.safetensors"))["tensor"].to(device)
+    stored = load_file(str(stage_dir(work, "tto") / "result.safetensors"))
+    tensor = stored["tensor"].to(device)
+    material_decoder = pred.material_decoder
+    tuned = {k.removeprefix("decoder."): v.to(device) for k, v in stored.items() if k.startswith("decoder.")}
+    if tuned:  # the TTO fine-tuned a copy of the material decoder (TTOConfig.train_decoder)
+        material_decoder = copy.deepcopy(pred.material_decoder)
+        material_decoder.load_state_dict(tuned)
+        material_decoder.requires_grad_(False)
     history = json.loads((stage_dir(work, "tto") / "history.json").read_text())
     stage_metrics = {s: read_done(work, s) for s in STAGES[:-1]}
     timings = {f"{s}_s": float(m.get("seconds", 0.0)) for s, m in stage_metrics.items()}
@@ -506,7 +518,7 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
         if tto.field == "triplane":
             triplane = Triplane.from_planes(tensor)
             triplane.requires_grad_(False)
-            field_ = TriplaneMaterialField(triplane, pred.material_decoder, basis)
+            field_ = TriplaneMaterialField(triplane, material_decoder, basis)
             extra: dict[str, torch.nn.Module] = {"uncertainty": pred.uncertainty_decoder, "pbr": pred.pbr_decoder}
             asset = asset_from_triplane(name, norm.mesh, field_, config.texture_resolution, extra_decoders=extra,
                                         provenance=provenance, metrics=metrics, timings=timings)  # fmt: skip

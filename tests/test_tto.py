@@ -148,8 +148,11 @@ def test_gradients_reach_only_the_triplane(example, truth_prediction):
     assert torch.equal(pred.triplane.planes, perturbed(truth_prediction, 0.1).triplane.planes)
 
 
-def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, tmp_path):
-    cfg = TTOConfig.preset("tiny", steps=6, pixels=64, spp=2, max_bounces=2, checkpoint_every=0, init="lmrm")
+@pytest.mark.parametrize("estimator", ["path", "cached"])
+def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, tmp_path, estimator):
+    # cached: rebuilt at steps 0 and 4, so the stop after step 3 resumes inside the first cache's round
+    cfg = TTOConfig.preset("tiny", steps=6, pixels=64, spp=2, max_bounces=2, checkpoint_every=0, init="lmrm",
+                           estimator=estimator, cache_pixels=128, cache_every=4)  # fmt: skip
 
     def problem():
         return build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,

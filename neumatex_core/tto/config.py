@@ -10,9 +10,9 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
 - reg: "uncertainty" (ours: weights exp(-log_var) of the LMRM), "none", or "oracle" (weights 1 / squared error of
   the LMRM G-buffers against ground truth; needs a synthetic object's ground truth);
 - material: "neural" (ours) or "pbr" (the NVDiffRecMC++ baseline: the same loop with the LMRM's PBR head);
-- estimator: "cached" (default: the light transport of `cache_pixels` photo pixels is cached every `cache_every`
-  steps, `render/transport_cache.py`, and each step re-evaluates only the material) or "path" (every step path
-  traces its pixels: the reference estimator, slower and noisier per CPU second).
+- estimator: "path" (default: every step path traces its pixels) or "cached" (the light transport of `cache_pixels`
+  photo pixels is cached every `cache_every` steps, `render/transport_cache.py`, and each step re-evaluates only
+  the material; cheaper steps, but it measured worse at equal time so far: docs/design-notes.md, item 22).
 """
 
 from __future__ import annotations
@@ -38,6 +38,8 @@ class TTOConfig:
     for the anchor (drawn from a fixed pool of `reg_pool` area-uniform points); uv_resolution: texels of the UV
     ablation's textures; random_std: standard deviation of a random triplane; checkpoint_every: steps between
     checkpoints (0: only when stopped); seed: every random draw of step s depends only on (seed, s).
+    train_decoder: the triplane variants also fine-tune (a copy of) their decoder, at lr x decoder_lr (the frozen
+    LMRM decoder caps what a triplane can express: docs/design-notes.md, "TTO fine-tunes the decoder").
     estimator "cached": each cache holds `cache_pixels` pixels x spp camera rays with `cache_directions` incident
     directions per hit and is rebuilt (new pixels, new directions, indirect light of the current material) every
     `cache_every` steps; a step draws its `pixels` pixels from the current cache.
@@ -64,25 +66,30 @@ class TTOConfig:
     init: InitKind = "lmrm"
     reg: RegKind = "uncertainty"
     material: MaterialKind = "neural"
-    estimator: EstimatorKind = "cached"
-    cache_pixels: int = 8192
+    # measured on benchmark object 0 (PBR, 400 steps, clean PathTrace): path 32.0 dB in 0.92 min; cached with
+    # 8192 pixels rebuilt every 100 steps 30.0 dB in 0.47 min, 2048 pixels every 10 steps 31.4 dB in 0.83 min
+    # (a fixed sample set is over-fitted between rebuilds; docs/design-notes.md, item 22)
+    estimator: EstimatorKind = "path"
+    cache_pixels: int = 2048
     cache_directions: int = 32
-    cache_every: int = 100
+    cache_every: int = 10
     pbr_steps: int = 200
+    train_decoder: bool = False
+    decoder_lr: float = 0.1
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:
         """'tiny', 'cpu' (default) or 'gpu', with field overrides."""
         if name == "tiny":
             base = cls(steps=12, pixels=128, spp=2, max_bounces=1, lr=0.05, reg_points=256, reg_pool=4096,
-                       uv_resolution=32, checkpoint_every=4, cache_pixels=512, cache_directions=8, cache_every=6,
+                       uv_resolution=32, checkpoint_every=4, cache_pixels=512, cache_directions=8, cache_every=4,
                        pbr_steps=6)  # fmt: skip
         elif name == "cpu":
-            base = cls(spp=2)
+            base = cls()
         elif name == "gpu":
             base = cls(steps=3000, pixels=8192, spp=16, max_bounces=4, lr=0.01, reg_points=16384, reg_pool=1 << 18,
-                       uv_resolution=512, checkpoint_every=200, cache_pixels=65536, cache_directions=64,
-                       cache_every=250)  # fmt: skip
+                       uv_resolution=512, checkpoint_every=200, cache_pixels=16384, cache_directions=64,
+                       cache_every=20)  # fmt: skip
         else:
             raise ValueError(f"unknown TTO preset {name!r} (expected one of {', '.join(PRESETS)})")
         return replace(base, **overrides)
@@ -95,6 +102,8 @@ class TTOConfig:
                 raise ValueError(f"TTO {name} must be >= 1, got {getattr(self, name)}")
         if not self.lr > 0 or not 0 < self.lr_final <= 1:
             raise ValueError(f"TTO lr must be > 0 and lr_final in (0, 1], got {self.lr} and {self.lr_final}")
+        if not self.decoder_lr > 0:
+            raise ValueError(f"TTO decoder_lr must be > 0, got {self.decoder_lr}")
         if self.lambda_reg < 0:
             raise ValueError(f"TTO lambda_reg must be >= 0, got {self.lambda_reg}")
         choices = {"field": ("triplane", "uv"), "init": ("lmrm", "random", "pbr"),

@@ -13,6 +13,7 @@ run.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 import time
@@ -131,9 +132,9 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
             params = PBRUV(tex)
         params.project()
     elif config.material == "neural":
-        params = NeuralTriplane(start, anchor_pred.material_decoder, basis)
+        params = NeuralTriplane(start, _decoder_copy(anchor_pred.material_decoder, config), basis)
     else:
-        params = PBRTriplane(start, anchor_pred.pbr_decoder)
+        params = PBRTriplane(start, _decoder_copy(anchor_pred.pbr_decoder, config))
     anchor = None
     if config.reg != "none" and config.lambda_reg > 0:
         points, uv = scene_mesh.sample_surface(config.reg_pool, seed=config.seed)
@@ -154,6 +155,21 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
     return TTOProblem(scene_mesh, envmap, photos, tonemap, params, anchor, device)
 
 
+def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
+    """The decoder a triplane parametrisation reads: the frozen one, or a private trainable copy (train_decoder)."""
+    if not config.train_decoder:
+        return decoder
+    return copy.deepcopy(decoder).requires_grad_(True)
+
+
+def make_optimizer(params: Parametrisation, config: TTOConfig) -> torch.optim.Adam:
+    """Adam over the field's tensor (group 0) and, with train_decoder, its decoder (group 1, lr x decoder_lr)."""
+    groups: list[dict[str, Any]] = [{"params": [params.tensor], "lr_scale": 1.0}]
+    if params.decoder_parameters():
+        groups.append({"params": params.decoder_parameters(), "lr_scale": config.decoder_lr})
+    return torch.optim.Adam(groups, lr=config.lr)
+
+
 def learning_rate(config: TTOConfig, step: int) -> float:
     """Cosine decay from lr to lr * lr_final over the steps."""
     t = min(step / max(config.steps, 1), 1.0)
@@ -171,6 +187,7 @@ def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametri
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
                 "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history,
+                "decoder": None if params.decoder is None else params.decoder.state_dict(),
                 "cache_tensor": None if cache_tensor is None else cache_tensor.cpu()}, tmp)  # fmt: skip
     os.replace(tmp, path)
 
@@ -185,6 +202,8 @@ def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation,
         raise ValueError(f"{path}: TTO checkpoint of another configuration; delete it to start the TTO over")
     with torch.no_grad():
         params.tensor.copy_(state["tensor"])
+    if params.decoder is not None and state.get("decoder") is not None:
+        params.decoder.load_state_dict(state["decoder"])
     opt.load_state_dict(state["optimizer"])
     cache_tensor = state.get("cache_tensor")
     return int(state["step"]), list(state["history"]), None if cache_tensor is None else cache_tensor.to(params.tensor)
@@ -232,7 +251,7 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     back with finished=False."""
     t0 = time.perf_counter()
     params = problem.params
-    opt = torch.optim.Adam([params.tensor], lr=config.lr)
+    opt = make_optimizer(params, config)
     step, history = 0, list[dict[str, float]]()
     cache_tensor: torch.Tensor | None = None
     if checkpoint is not None and checkpoint.is_file():
@@ -253,7 +272,7 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         g = step_generator(config, step, problem.device)
         lr = learning_rate(config, step)
         for group in opt.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr * group["lr_scale"]
         if cached is not None:
             if step % config.cache_every == 0:
                 cached.build(step, params.tensor)

@@ -5,8 +5,10 @@
 - `PBRTriplane`: the triplane read by the LMRM's frozen PBR head -> PBRMaterial (NVDiffRecMC++ baseline);
 - `PBRUV`: a texture [R, R, 5] (base colour, roughness, metallic in [0, 1]) on an xatlas unwrap.
 
-Each gives `tensor` (the only leaf Adam sees), `field()` (for the path tracer), `gbuffer(points, uv)` (the values
-the anchor compares: [N, 9] (rho_d, latent) or [N, 5] PBR) and `project()` (keeps texture values in range).
+Each gives `tensor` (the field's own leaf), `decoder` (the triplane variants' decoder, or None), `field()` (for the
+path tracer), `gbuffer(points, uv)` (the values the anchor compares: [N, 9] (rho_d, latent) or [N, 5] PBR) and
+`project()` (keeps texture values in range). With TTOConfig.train_decoder the triplane variants get a private copy
+of their decoder whose weights Adam fine-tunes with the planes (docs/design-notes.md, "TTO fine-tunes the decoder").
 """
 
 from __future__ import annotations
@@ -49,9 +51,16 @@ class Parametrisation(ABC):
     """A learnable tensor and the material field it defines."""
 
     tensor: torch.Tensor
+    decoder: torch.nn.Module | None = None
 
     @abstractmethod
     def field(self) -> MaterialField: ...
+
+    def decoder_parameters(self) -> list[torch.Tensor]:
+        """The decoder weights TTO fine-tunes ([] when the decoder is frozen or there is none)."""
+        if self.decoder is None:
+            return []
+        return [p for p in self.decoder.parameters() if p.requires_grad]
 
     @abstractmethod
     def gbuffer(self, points: torch.Tensor, uv: torch.Tensor | None) -> torch.Tensor: ...
@@ -62,7 +71,7 @@ class Parametrisation(ABC):
 
 class NeuralTriplane(Parametrisation):
     def __init__(self, triplane: Triplane, decoder: MaterialDecoder, basis: NeuralBasis) -> None:
-        self.triplane = triplane
+        self.triplane, self.decoder = triplane, decoder
         self.tensor = triplane.planes
         self._field = TriplaneMaterialField(triplane, decoder, basis)
 
@@ -102,7 +111,7 @@ class NeuralUV(_UVTexture):
 
 class PBRTriplane(Parametrisation):
     def __init__(self, triplane: Triplane, decoder: PBRDecoder) -> None:
-        self.triplane = triplane
+        self.triplane, self.decoder = triplane, decoder
         self.tensor = triplane.planes
         self._field = PBRTriplaneField(triplane, decoder)
 

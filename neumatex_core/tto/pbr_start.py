@@ -13,6 +13,7 @@ neural material begins at the PBR fit (up to the basis's and the fit's error, wh
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -35,17 +36,13 @@ FIT_STEPS = 300
 FIT_LR = 0.05
 
 
-def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis: NeuralBasis, seed: int = 0,
-                     steps: int = FIT_STEPS) -> float:
-    """Fit the planes of `neural` (in place; decoder frozen) to the PBR field `pbr` expressed in the basis; returns
-    the final mean squared G-buffer error on (rho_d, (latent + 1) / 2), the G-buffer metric's scale."""
-    points, _ = mesh.sample_surface(FIT_POINTS, seed=seed)
-    points = points.to(neural.tensor.device)
-    with torch.no_grad():
-        v = pbr.gbuffer(points, None)
-        rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
-        want = torch.cat([rho, (latent + 1) / 2], dim=-1)
-    opt = torch.optim.Adam([neural.tensor], lr=FIT_LR)
+def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor, latent: torch.Tensor, seed: int = 0,
+               steps: int = FIT_STEPS) -> float:
+    """Fit the planes of `neural` (in place, and its decoder where TTO fine-tunes it) to G-buffers rho_d [P, 3],
+    latent [P, 6] at surface points [P, 3]; returns the final mean squared error on (rho_d, (latent + 1) / 2), the
+    G-buffer metric's scale."""
+    want = torch.cat([rho_d, (latent + 1) / 2], dim=-1).detach()
+    opt = torch.optim.Adam([neural.tensor, *neural.decoder_parameters()], lr=FIT_LR)
     g = torch.Generator(device=points.device).manual_seed(seed)
 
     def error(idx: torch.Tensor | None = None) -> torch.Tensor:
@@ -55,7 +52,7 @@ def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis
 
     for step in range(steps):
         for group in opt.param_groups:
-            group["lr"] = FIT_LR * 0.5 * (1 + torch.cos(torch.tensor(torch.pi * step / steps)).item())
+            group["lr"] = FIT_LR * 0.5 * (1 + math.cos(math.pi * step / steps))
         idx = torch.randint(0, points.shape[0], (8192,), generator=g, device=points.device)
         loss = error(idx)
         opt.zero_grad(set_to_none=True)
@@ -63,6 +60,17 @@ def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis
         opt.step()
     with torch.no_grad():
         return float(error())
+
+
+def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis: NeuralBasis, seed: int = 0,
+                     steps: int = FIT_STEPS) -> float:
+    """Fit the planes of `neural` to the PBR field `pbr` expressed in the basis (`fit_planes` at area samples)."""
+    points, _ = mesh.sample_surface(FIT_POINTS, seed=seed)
+    points = points.to(neural.tensor.device)
+    with torch.no_grad():
+        v = pbr.gbuffer(points, None)
+        rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
+    return fit_planes(neural, points, rho, latent, seed, steps)
 
 
 def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
