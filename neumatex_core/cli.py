@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from neumatex_core.config import add_config_arguments, config_from_args, option
+from neumatex_core.eval.reference_set import ReferencesConfig
 from neumatex_core.eval.suite import EvalConfig, run_eval_command
 from neumatex_core.extract_cli import ExtractCommandConfig, run_extract
 from neumatex_core.lmrm.train import TrainLMRMConfig
@@ -247,6 +248,26 @@ def run_synth(cfg: SynthConfig) -> int:
     return 0
 
 
+def run_references(cfg: ReferencesConfig) -> int:
+    """Render (or resume) the reference halves of a synthetic split's objects; prints what was made."""
+    from tqdm import tqdm
+
+    from neumatex_core.eval.reference_set import make_references
+
+    with tqdm(unit="object", desc="references", disable=not cfg.progress) as bar:
+        def progress(done: int, total: int, record: dict[str, Any] | None) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+            if record is not None:
+                bar.set_postfix(last=record["id"], s=record["seconds"])
+            bar.refresh()
+
+        result = make_references(cfg, progress)
+    print(f"made the references of {len(result['made'])} objects, {result['skipped']} already there "
+          f"(of {result['objects']} selected), in {result['seconds']:.1f} s; spp {cfg.spp_half} x 2 per view")
+    return 0
+
+
 def run_train_lmrm(cfg: TrainLMRMConfig) -> int:
     """Train (or resume) the LMRM with a progress bar; prints the validation PSNRs and where the weights are."""
     from tqdm import tqdm
@@ -283,6 +304,7 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
     "gallery": (GalleryConfig, run_gallery),
     "synth": (SynthConfig, run_synth),
     "synth-sheets": (SheetsConfig, run_sheets),
+    "references": (ReferencesConfig, run_references),
     "train-lmrm": (TrainLMRMConfig, run_train_lmrm),
     "extract": (ExtractCommandConfig, run_extract),
     "eval": (EvalConfig, run_eval_command),

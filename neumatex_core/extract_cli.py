@@ -30,8 +30,8 @@ class ExtractCommandConfig:
     work: str = option("", "folder for the stages' outputs (default: .<out name>.work beside --out); keep it to resume")
     init: Literal["auto", "lmrm", "pbr", "random"] = option(
         "auto", "start the TTO from the LMRM's prediction (lmrm: fail without a usable LMRM checkpoint), from a PBR "
-        "fit (pbr: PBR TTO from the LMRM's PBR head first) or a random triplane; auto: pbr when the LMRM checkpoint "
-        "loads, else random (and says so)")
+        "fit (pbr: PBR TTO from the LMRM's PBR head first) or a random triplane; auto: lmrm when the LMRM "
+        "checkpoint loads, else random (and says so)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
     steps: int = option(0, "TTO steps (0: the preset's)")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")

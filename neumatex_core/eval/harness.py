@@ -8,6 +8,12 @@ each variant's TTO runs from the stored prediction (`variant_config` on the conf
 PSNR_BaseColor and PSNR_Latents against the ground-truth G-buffers of the preset views, PSNR_PathTrace of the
 orbital views (tonemapped, covered pixels, against the stored photos: the same sample count on both sides and a
 fixed seed), and the TTO's minutes (wall and CPU).
+
+When the object has references (`eval/references.py`, `neumatex references`), every variant also gets
+psnr_pathtrace_clean / psnr_relight_clean: the variant rendered twice per view with independent seeds
+(`clean_spp_half` samples each) against the ground-truth material's two reference halves, with the Monte Carlo
+noise of both sides subtracted (`references.clean_psnr`; pooled over the covered pixels of the scored views).
+The truth row scores the exact ground-truth material (`references.truth_field`) there.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import torch
 from neumatex_core.capture import load_capture
 from neumatex_core.eval.gbuffers import GroundTruth, gbuffer_psnr, ground_truth, truth_lookup
 from neumatex_core.eval.metrics import psnr
+from neumatex_core.eval.references import clean_metrics, has_references, truth_field
 from neumatex_core.eval.variants import variant_config
 from neumatex_core.geometry.camera import PRESET_ORBIT_VIEWS
 from neumatex_core.geometry.gbuffer import render_gbuffer
@@ -90,19 +97,24 @@ def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: Ground
 def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, config: ExtractConfig,
                      render_views: Sequence[int] = tuple(range(PRESET_ORBIT_VIEWS)), render_spp: int | None = None,
                      render_bounces: int = 3, relight_views: Sequence[int] = (),
-                     figure_dir: str | Path | None = None) -> dict[str, float]:
+                     figure_dir: str | Path | None = None, clean_spp_half: int = 32) -> dict[str, float]:
     """The table numbers of one variant on one synthetic object (see the module docstring). `render_spp`
     defaults to the sample count the object's photos were made with (its synth.json / meta.json content).
 
     relight_views: frames of each held-out lighting (`relight/K` of the object) to score as `psnr_relight`
     (mean over maps and frames, at the relight photos' own sample count); empty: none.
     figure_dir: when given, writes the variant's pictures of preset view 0 there (`render.png` tonemapped,
-    `basecolor.png` sRGB, `latent.png` channels 0-2 as (l + 1) / 2; uncovered pixels white)."""
+    `basecolor.png` sRGB, `latent.png` channels 0-2 as (l + 1) / 2; uncovered pixels white).
+    clean_spp_half: samples per pixel of each of the two renders per view of the clean scoring (module
+    docstring; only for objects with references; 0: none). Adds psnr_pathtrace_clean (`render_views`) and
+    psnr_relight_clean (`relight_views` of every held-out lighting), each with _raw / _mse / _se
+    (`references.clean_metrics`)."""
     object_dir, work = Path(object_dir), Path(work)
     for stage in ("validate", "prepare_views", "lmrm"):
         run_stage(stage, object_dir, work, config)
     if variant == TRUTH:
-        return _evaluate_truth(object_dir, render_views, render_spp, render_bounces, relight_views, config.seed)
+        return _evaluate_truth(object_dir, render_views, render_spp, render_bounces, relight_views, config.seed,
+                               clean_spp_half)
     pred, record = load_prediction(work)
     if not record["trained"]:
         raise ValueError(f"{work}: evaluation needs a trained LMRM (the lmrm stage fell back to a random start)")
@@ -135,6 +147,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     if relight_views:
         out["psnr_relight"] = _relight_psnr(object_dir, field, relight_views, render_spp, render_bounces, config.seed,
                                             scene_mesh)  # fmt: skip
+    out.update(clean_metrics(object_dir, field, scene_mesh, render_views, relight_views, clean_spp_half, config.seed))
     if figure_dir is not None:
         write_figures(Path(figure_dir), cap, field, gfn, scene_mesh, render_spp, render_bounces, config.seed)
     return out
@@ -161,9 +174,10 @@ class GroundTruthField(MaterialField):
 
 
 def _evaluate_truth(object_dir: Path, render_views: Sequence[int], render_spp: int | None, render_bounces: int,
-                    relight_views: Sequence[int], seed: int) -> dict[str, float]:
+                    relight_views: Sequence[int], seed: int, clean_spp_half: int = 0) -> dict[str, float]:
     """PSNR PathTrace / Relight of the ground-truth material (the ceiling set by Monte Carlo noise and the
-    G-buffers' pixel sampling); BaseColor / Latents are not scored (inf by definition)."""
+    G-buffers' pixel sampling); BaseColor / Latents are not scored (inf by definition). The clean numbers (objects
+    with references) use the exact ground-truth field (`references.truth_field`)."""
     meta = json.loads((object_dir / "meta.json").read_text())
     spp = int(meta["content"]["spp"]) if render_spp is None else render_spp
     field = GroundTruthField(ground_truth(object_dir), load_basis())
@@ -171,6 +185,9 @@ def _evaluate_truth(object_dir: Path, render_views: Sequence[int], render_spp: i
     out = {"psnr_pathtrace": _render_psnr(object_dir, field, render_views, spp, render_bounces, seed, mesh)}
     if relight_views:
         out["psnr_relight"] = _relight_psnr(object_dir, field, relight_views, spp, render_bounces, seed, mesh)
+    if clean_spp_half > 0 and has_references(object_dir):
+        out.update(clean_metrics(object_dir, truth_field(object_dir), mesh, render_views, relight_views,
+                                 clean_spp_half, seed))  # fmt: skip
     return out
 
 

@@ -35,10 +35,13 @@ from neumatex_core.eval.harness import TRUTH
 from neumatex_core.eval.plots import DifferenceRow, difference_chart
 from neumatex_core.eval.variants import TABLES, VARIANTS
 
-METRICS = ("psnr_pathtrace", "psnr_basecolor", "psnr_latents", "psnr_relight", "tto_minutes")
+METRICS = ("psnr_pathtrace", "psnr_basecolor", "psnr_latents", "psnr_relight", "tto_minutes", "psnr_pathtrace_clean",
+           "psnr_relight_clean")
+CLEAN_METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean")  # only where references exist (eval/references.py)
 LABELS = {
     "psnr_pathtrace": "PSNR PathTrace", "psnr_basecolor": "PSNR BaseColor", "psnr_latents": "PSNR Latents",
-    "psnr_relight": "PSNR Relight", "tto_minutes": "TTO min",
+    "psnr_relight": "PSNR Relight", "tto_minutes": "TTO min", "psnr_pathtrace_clean": "PSNR PathTrace clean",
+    "psnr_relight_clean": "PSNR Relight clean",
 }  # fmt: skip
 ROW_NAMES = {
     "pbr": "PBR baseline (NVDiffRecMC++: PBR head init, PBR TTO)",
@@ -48,12 +51,19 @@ ROW_NAMES = {
     "t2f_triplane_lmrm_unc": "(f) triplane + LMRM init + unc. reg (ours)", "t3a_no_tto": "(a) no TTO (LMRM only)",
     "t3b_no_reg": "(b) TTO, no regulariser", "t3c_unc": "(c) TTO, predicted uncertainty (ours)",
     "t3d_oracle": "(d) TTO, oracle uncertainty",
+    "ours_pbr_start_no_reg": "neural from the PBR solution (init pbr), no regulariser",
+    "ours_pbr_start": "neural from the PBR solution (init pbr) + unc. reg",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
-TABLE_METRICS = {
-    "table1": ("psnr_pathtrace", "psnr_basecolor", "psnr_relight", "tto_minutes"),
-    "table2": ("psnr_basecolor", "psnr_latents", "psnr_pathtrace", "psnr_relight"),
-    "table3": ("psnr_basecolor", "psnr_latents", "psnr_pathtrace", "psnr_relight"),
+TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
+    "table1": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
+               "tto_minutes"),
+    "table2": ("psnr_basecolor", "psnr_latents", "psnr_pathtrace", "psnr_pathtrace_clean", "psnr_relight",
+               "psnr_relight_clean"),
+    "table3": ("psnr_basecolor", "psnr_latents", "psnr_pathtrace", "psnr_pathtrace_clean", "psnr_relight",
+               "psnr_relight_clean"),
+    "starts": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+               "psnr_relight_clean", "tto_minutes"),
 }
 FIGURE_VARIANTS = ("ours", "pbr")
 
@@ -67,11 +77,13 @@ class EvalConfig:
                        positional=True)
     out: str = option("runs/eval", "work folder and per-(object, variant) results; rerun the command to resume")
     objects: str = option("all", "'all', 'first:N', 'every:K' (objects 0, K, 2K, ...) or comma-separated ids")
-    tables: str = option("table1,table2,table3", "comma-separated subset of table1, table2, table3")
+    tables: str = option("table1,table2,table3", "comma-separated subset of table1, table2, table3, starts")
     preset: Literal["cpu", "gpu", "tiny"] = option("cpu", "extraction preset (TTO schedule, sample counts)")
     steps: int = option(0, "TTO steps (0: the preset's)")
     render_views: int = option(17, "orbital views scored for PSNR PathTrace (0..N-1; 17: all)")
     relight_views: str = option("0,4,8,12,16", "frames of each held-out lighting scored for PSNR Relight ('': none)")
+    clean_spp_half: int = option(32, "samples per pixel of each of the two renders per view scored against the "
+                                     "objects' references (`neumatex references`; 0: no clean PSNR)")
     workers: int = option(1, "processes (objects run in parallel; each uses --threads torch threads)")
     threads: int = option(1, "torch CPU threads per process")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
@@ -121,7 +133,8 @@ def distinct_variants(tables: list[str]) -> dict[str, str]:
 
 
 def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], runs: list[str], render_views: int,
-                     relight_views: list[int], figure: bool, threads: int) -> list[tuple[str, dict[str, float]]]:
+                     relight_views: list[int], figure: bool, threads: int, clean_spp_half: int = 32
+                     ) -> list[tuple[str, dict[str, float]]]:
     """Worker: every variant of `runs` on one object (skipping stored results); returns the new results."""
     import torch
 
@@ -139,7 +152,7 @@ def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], ru
             else None  # fmt: skip
         metrics = evaluate_variant(Path(data) / obj, Path(out) / "work" / obj, variant, config,
                                    render_views=tuple(range(render_views)), relight_views=tuple(relight_views),
-                                   figure_dir=figure_dir)  # fmt: skip
+                                   figure_dir=figure_dir, clean_spp_half=clean_spp_half)  # fmt: skip
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_suffix(".tmp")
         tmp.write_text(json.dumps({"object": obj, "variant": variant, **metrics}, indent=1))
@@ -190,7 +203,7 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
     if progress and not cfg.report_only:
         progress(finished, total, "")
     jobs = [(cfg.data, o, cfg.out, config.to_dict(), runs, cfg.render_views, relight, o in figure_objects,
-             cfg.threads) for o in objects] if not cfg.report_only else []  # fmt: skip
+             cfg.threads, cfg.clean_spp_half) for o in objects] if not cfg.report_only else []  # fmt: skip
     if cfg.workers <= 1:
         for job in jobs:
             for variant, _ in _evaluate_object(*job):
@@ -275,6 +288,17 @@ def bias_only_psnr(res: Results, variant: str) -> tuple[float, int]:
     return (float(np.median(vals)), len(vals)) if vals else (math.nan, 0)
 
 
+def has_metric(res: Results, metric: str) -> bool:
+    """Whether any variant has a value of `metric` (the clean metrics exist only for objects with references)."""
+    return any(rows.get(metric) for rows in res.values())
+
+
+def _with_clean(res: Results, metrics: tuple[str, ...]) -> tuple[str, ...]:
+    """`metrics` plus the clean twin of PathTrace / Relight among them, where results have it."""
+    extra = tuple(f"{m}_clean" for m in metrics if f"{m}_clean" in CLEAN_METRICS and has_metric(res, f"{m}_clean"))
+    return metrics + extra
+
+
 def _fmt_diff(label: str, diff: tuple[float, float, int]) -> str:
     mean, se, n = diff
     resolved = "" if math.isnan(se) or abs(mean) > 2 * se else ", not resolved"
@@ -297,10 +321,10 @@ def orderings(res: Results) -> list[tuple[str, bool | None, str]]:
         None if math.isnan(d[0]) else d[0] >= 1.0,
         _fmt_diff("ours - PBR", d) + "; headroom: " + _fmt_diff("ground-truth material - PBR", headroom)
         + f"; with the noise taken out (median, approx.): ours {bias_only_psnr(res, 'ours')[0]:.1f}, "
-        f"PBR {bias_only_psnr(res, 'pbr')[0]:.1f} dB")
+        f"PBR {bias_only_psnr(res, 'pbr')[0]:.1f} dB" + _clean_detail(res))
     for rnd, lmrm, label in (("t2a_uv", "t2b_uv_lmrm", "UV"), ("t2d_triplane", "t2e_triplane_lmrm", "triplane")):
-        diffs = {m: paired_difference(res, lmrm, rnd, m) for m in ("psnr_basecolor", "psnr_latents",
-                                                                    "psnr_pathtrace")}
+        diffs = {m: paired_difference(res, lmrm, rnd, m)
+                 for m in _with_clean(res, ("psnr_basecolor", "psnr_latents", "psnr_pathtrace"))}
         ok = None if any(math.isnan(v[0]) for v in diffs.values()) else all(v[0] > 0 for v in diffs.values())
         add(f"LMRM initialisation beats random initialisation on every metric ({label})", ok,
             "; ".join(_fmt_diff(LABELS[m], v) for m, v in diffs.items()))
@@ -309,16 +333,30 @@ def orderings(res: Results) -> list[tuple[str, bool | None, str]]:
         ok = None if any(math.isnan(v[0]) for v in diffs.values()) else all(v[0] > 0 for v in diffs.values())
         add(f"uncertainty regularisation improves BaseColor and Latents over no regulariser ({label})", ok,
             "; ".join(_fmt_diff(LABELS[m], v) for m, v in diffs.items()))
-    diffs = {m: paired_difference(res, "t3d_oracle", "t3c_unc", m) for m in ("psnr_basecolor", "psnr_latents",
-                                                                              "psnr_pathtrace")}
+    diffs = {m: paired_difference(res, "t3d_oracle", "t3c_unc", m)
+             for m in _with_clean(res, ("psnr_basecolor", "psnr_latents", "psnr_pathtrace"))}
     ok = None if any(math.isnan(v[0]) for v in diffs.values()) else all(abs(v[0]) <= 1.0 for v in diffs.values())
     add("predicted uncertainty lands within 1 dB of the oracle", ok,
         "; ".join(_fmt_diff(f"{LABELS[m]} oracle - ours", v) for m, v in diffs.items()))
     gap, truth_gap = (paired_difference(res, v, v, "psnr_pathtrace", "psnr_relight") for v in ("ours", TRUTH))
+    clean_gap = ""
+    if has_metric(res, "psnr_relight_clean"):
+        clean_gap = "; clean: " + _fmt_diff("ours PathTrace - Relight", paired_difference(
+            res, "ours", "ours", "psnr_pathtrace_clean", "psnr_relight_clean"))
     add("(not in the paper; the issue's) relighting within 2 dB of PathTrace under the capture's own lighting",
         None if math.isnan(gap[0]) else gap[0] <= 2.0,
-        _fmt_diff("ours PathTrace - Relight", gap) + "; " + _fmt_diff("the ground-truth material's", truth_gap))
+        _fmt_diff("ours PathTrace - Relight", gap) + "; " + _fmt_diff("the ground-truth material's", truth_gap)
+        + clean_gap)
     return checks
+
+
+def _clean_detail(res: Results) -> str:
+    """The PathTrace claim's clean numbers (against the references, noise subtracted), '' without them."""
+    pc = "psnr_pathtrace_clean"
+    if not has_metric(res, pc):
+        return ""
+    return ("; clean (against references): " + _fmt_diff("ours - PBR", paired_difference(res, "ours", "pbr", pc))
+            + "; " + _fmt_diff("ground-truth material - PBR", paired_difference(res, TRUTH, "pbr", pc)))
 
 
 def object_families(data: Path, objects: list[str]) -> dict[str, list[str]]:
@@ -338,14 +376,16 @@ def family_lines(res: Results, families: dict[str, list[str]]) -> list[str]:
     """Markdown table: ours - PBR (PathTrace, BaseColor) and the headroom, over the objects containing each family.
 
     An object with two families counts in both rows, so the rows overlap and do not add up."""
-    pt, bc = "psnr_pathtrace", "psnr_basecolor"
-    lines = ["| family | objects | ours - PBR, PathTrace | ground truth - PBR, PathTrace | ours - PBR, BaseColor |",
-             "|---|---|---|---|---|"]
+    pt, bc, pc = "psnr_pathtrace", "psnr_basecolor", "psnr_pathtrace_clean"
+    columns = [("ours", pt), (TRUTH, pt), ("ours", bc)] + ([("ours", pc)] if has_metric(res, pc) else [])
+    lines = ["| family | objects | ours - PBR, PathTrace | ground truth - PBR, PathTrace | ours - PBR, BaseColor |"
+             + (" ours - PBR, PathTrace clean |" if len(columns) > 3 else ""), "|---|---|---|---|---|"
+             + "---|" * (len(columns) - 3)]
     for family in sorted({f for fs in families.values() for f in fs}):
         keep = {o for o, fs in families.items() if family in fs}
         sub: Results = {v: {m: {o: x for o, x in per.items() if o in keep} for m, per in rows.items()}
                         for v, rows in res.items()}  # fmt: skip
-        diffs = [paired_difference(sub, a, "pbr", m) for a, m in (("ours", pt), (TRUTH, pt), ("ours", bc))]
+        diffs = [paired_difference(sub, a, "pbr", m) for a, m in columns]
         cells = ["-" if n == 0 else f"{mean:+.2f} ± {se:.2f}" if n > 1 else f"{mean:+.2f}" for mean, se, n in diffs]
         if diffs[0][2]:  # objects with both ours and PBR PathTrace
             lines.append(f"| {family} | {diffs[0][2]} | " + " | ".join(cells) + " |")
@@ -354,7 +394,7 @@ def family_lines(res: Results, families: dict[str, list[str]]) -> list[str]:
 
 def difference_rows(res: Results) -> list[DifferenceRow]:
     """The comparisons behind `orderings`, per object, for the paired-difference chart."""
-    bc, lat, pt = "psnr_basecolor", "psnr_latents", "psnr_pathtrace"
+    bc, lat, pt, pc = "psnr_basecolor", "psnr_latents", "psnr_pathtrace", "psnr_pathtrace_clean"
     spec: list[tuple[str, str, str, str, str, tuple[float, ...]]] = [
         ("ours - PBR, PathTrace", "ours", "pbr", pt, "", (1.0,)),
         ("ground truth - PBR, PathTrace (headroom)", TRUTH, "pbr", pt, "", ()),
@@ -367,6 +407,13 @@ def difference_rows(res: Results) -> list[DifferenceRow]:
         *[(f"oracle - ours, {LABELS[m]}", "t3d_oracle", "t3c_unc", m, "", (-1.0, 1.0)) for m in (bc, lat, pt)],
         ("ours: PathTrace - Relight", "ours", "ours", pt, "psnr_relight", (2.0,)),
         ("ground truth: PathTrace - Relight", TRUTH, TRUTH, pt, "psnr_relight", (2.0,)),
+        # against the references, noise subtracted (empty, and left out of the chart, without references)
+        ("ours - PBR, PathTrace clean", "ours", "pbr", pc, "", (1.0,)),
+        ("ground truth - PBR, PathTrace clean (headroom)", TRUTH, "pbr", pc, "", ()),
+        *[(f"LMRM - random init, {label}, {LABELS[pc]}", lmrm, rnd, pc, "", ())
+          for rnd, lmrm, label in (("t2d_triplane", "t2e_triplane_lmrm", "triplane"), ("t2a_uv", "t2b_uv_lmrm", "UV"))],
+        (f"oracle - ours, {LABELS[pc]}", "t3d_oracle", "t3c_unc", pc, "", (-1.0, 1.0)),
+        ("ours: PathTrace clean - Relight clean", "ours", "ours", pc, "psnr_relight_clean", (2.0,)),
     ]  # fmt: skip
     return [DifferenceRow(label, list(paired_values(res, a, b, m, mb).values()), thr)
             for label, a, b, m, mb, thr in spec]
@@ -466,14 +513,16 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         f"{cfg.render_views} orbital views vs the object's photos at the photos' sample count (covered pixels); "
         "BaseColor / Latents: the G-buffers of the 23 preset views vs ground truth; Relight: frames "
         f"{cfg.relight_views} under the two held-out lightings vs their photos (16 spp references, so Monte Carlo "
-        "noise caps it); TTO min: wall-clock minutes of the TTO alone on this machine.",
+        "noise caps it); TTO min: wall-clock minutes of the TTO alone on this machine."
+        + _clean_description(cfg, res, finished),
         "",
     ]
     for table in tables:
-        metrics = TABLE_METRICS[table]
+        metrics = tuple(m for m in TABLE_METRICS[table] if m not in CLEAN_METRICS or has_metric(res, m))
         title = {"table1": "Table 1: PBR baseline vs neural material",
                  "table2": "Table 2: design ablation (UV / triplane x LMRM init x uncertainty regulariser)",
-                 "table3": "Table 3: TTO regularisation"}[table]  # fmt: skip
+                 "table3": "Table 3: TTO regularisation",
+                 "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution"}[table]  # fmt: skip
         lines += [f"## {title}", "", "| variant | n | " + " | ".join(LABELS[m] for m in metrics) + " |",
                   "|---|---|" + "---|" * len(metrics)]
         for name in [*TABLES[table], TRUTH]:
@@ -509,6 +558,20 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text("\n".join(lines))
     return doc
+
+
+def _clean_description(cfg: EvalConfig, res: Results, objects: list[str]) -> str:
+    """The page's sentence on the clean columns ('' when no result has them)."""
+    if not any(has_metric(res, m) for m in CLEAN_METRICS):
+        return ""
+    spp = sorted({json.loads(f.read_text())["settings"]["spp_half"] for o in objects
+                  if (f := Path(cfg.data) / o / "references" / "meta.json").is_file()})  # fmt: skip
+    return (" PSNR PathTrace clean / Relight clean: the same views rendered twice with independent seeds "
+            f"({cfg.clean_spp_half} spp each) against the ground-truth material rendered twice "
+            f"({'/'.join(str(s) for s in spp) or '?'} spp each; `neumatex references`), with the Monte Carlo noise of "
+            "both sides subtracted (`eval/references.py`, `clean_psnr`; pooled over the covered pixels of the scored "
+            "views; the ground-truth row measures what is left of the noise, 100 dB where nothing is); objects "
+            "without references: -.")
 
 
 def run_eval_command(cfg: EvalConfig) -> int:

@@ -4,6 +4,8 @@ Table 1 (PBR vs neural material): "pbr" (NVDiffRecMC++: PBR head, LMRM init, no 
 Table 2 (design choices): (a)-(c) UV textures, (d)-(f) triplane; x LMRM init x uncertainty regulariser.
 Table 3 (TTO regularisation): (a) no TTO (the LMRM's prediction itself: steps = 0), (b) no regulariser,
 (c) predicted uncertainty (ours), (d) oracle uncertainty.
+Starts (issue 14, not in the paper): the neural TTO from the LMRM (with and without the anchor) against the neural
+TTO from the PBR baseline's solution ("ours_pbr_start", init="pbr", tto/pbr_start.py), with and without the anchor.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ TABLES: dict[str, list[str]] = {
     "table2": ["t2a_uv", "t2b_uv_lmrm", "t2c_uv_lmrm_unc", "t2d_triplane", "t2e_triplane_lmrm",
                "t2f_triplane_lmrm_unc"],
     "table3": ["t3a_no_tto", "t3b_no_reg", "t3c_unc", "t3d_oracle"],
+    "starts": ["pbr", "t3b_no_reg", "ours", "ours_pbr_start_no_reg", "ours_pbr_start"],
 }
 
 
