@@ -10,7 +10,7 @@ SHARED ?= $(abspath ../shared)
 LLVM19 := /usr/lib/x86_64-linux-gnu/libLLVM.so.19.1
 export DRJIT_LIBLLVM_PATH ?= $(LLVM19)
 
-.PHONY: install sysdeps demo test lint bench clean serve
+.PHONY: install sysdeps demo test lint bench clean serve cycles-env
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -32,6 +32,22 @@ sysdeps: $(SYSSTAMP)
 	@command -v redis-server >/dev/null || { SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q redis-server; }
 
+# Blender Cycles as a Python module (bpy from PyPI) in its own venv, for captures rendered by an outside
+# renderer (tools/cycles_capture.py, bench/cycles_agreement.py). bpy pins its own numpy; nothing else goes in.
+CYCLES_VENV := .venv-cycles
+# bpy wheels of the 4.5 LTS line are built for CPython 3.11 only.
+CYCLES_PYTHON ?= python3.11
+BPY_VERSION := 4.5.15
+CYCLES_STAMP := $(CYCLES_VENV)/.installed-bpy-$(BPY_VERSION)
+
+$(CYCLES_STAMP):
+	test -x $(CYCLES_VENV)/bin/python || $(CYCLES_PYTHON) -m venv $(CYCLES_VENV)
+	$(CYCLES_VENV)/bin/python -m pip install -q bpy==$(BPY_VERSION)
+	$(CYCLES_VENV)/bin/python -c "import bpy; print('bpy', bpy.app.version_string)"
+	touch $(CYCLES_STAMP)
+
+cycles-env: $(CYCLES_STAMP)
+
 # A real extraction (CPU preset) of the bundled example capture; rerunning resumes from out/demo/work.
 # --init auto: LMRM initialisation when the shipped LMRM checkpoint loads, else a random triplane (no anchor).
 demo: install
@@ -39,13 +55,13 @@ demo: install
 	  --preset cpu --init auto
 	@echo "demo: open out/demo/teapot-asset/report/index.html (asset package in out/demo/teapot-asset/)"
 
-test: install sysdeps
-	$(VENV)/bin/ruff check neumatex_core services workers tests bench
+test: install sysdeps cycles-env
+	$(VENV)/bin/ruff check neumatex_core services workers tests bench tools
 	$(VENV)/bin/mypy neumatex_core services workers
 	NEUMATEX_SHARED=$(SHARED) $(PY) -m pytest -q
 
 lint: install
-	$(VENV)/bin/ruff check neumatex_core services workers tests bench
+	$(VENV)/bin/ruff check neumatex_core services workers tests bench tools
 	$(VENV)/bin/mypy neumatex_core services workers
 
 bench: install sysdeps

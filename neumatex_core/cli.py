@@ -16,6 +16,7 @@ from neumatex_core.extract_cli import ExtractCommandConfig, run_extract
 from neumatex_core.lmrm.train import TrainLMRMConfig
 from neumatex_core.materials.basis_training import TrainBasisConfig
 from neumatex_core.synth.config import SynthConfig
+from neumatex_core.synth.cycles import CyclesCaptureConfig, run_cycles_capture
 from neumatex_core.synth.sheets import SheetsConfig, run_sheets
 
 
@@ -305,6 +306,7 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
     "synth": (SynthConfig, run_synth),
     "synth-sheets": (SheetsConfig, run_sheets),
     "references": (ReferencesConfig, run_references),
+    "cycles-capture": (CyclesCaptureConfig, run_cycles_capture),
     "train-lmrm": (TrainLMRMConfig, run_train_lmrm),
     "extract": (ExtractCommandConfig, run_extract),
     "eval": (EvalConfig, run_eval_command),

@@ -173,7 +173,7 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     doc = tmp_path / "docs" / "results.md"
     cfg = EvalConfig(data=str(data), out=str(tmp_path / "eval"), tables="table1,table3", preset="tiny",
                      render_views=1, relight_views="", device="cpu", lmrm_weights=str(tiny_lmrm), doc=str(doc),
-                     figures=1, progress=False)  # fmt: skip
+                     figures=1, progress=False, record=str(tmp_path / "eval.jsonl"))  # fmt: skip
     canon = distinct_variants(["table1", "table3"])
     assert canon["t3c_unc"] == "ours" and canon["ours"] == "ours"  # identical settings run once
     seen: list[tuple[int, int]] = []
@@ -192,6 +192,12 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     assert math.isfinite(ours["psnr_pathtrace"]) and ours["psnr_basecolor"] > 0
     truth = json.loads((tmp_path / "eval" / "results" / "test-000000" / "truth.json").read_text())
     assert truth["psnr_pathtrace"] > ours["psnr_pathtrace"]  # the true material is the ceiling
+    # one machine-readable line per written page: means and the headline paired differences
+    record = json.loads((tmp_path / "eval.jsonl").read_text().splitlines()[-1])
+    assert record["objects"] == 1 and record["means"]["ours"]["psnr_pathtrace"] == ours["psnr_pathtrace"]
+    mean, _, n = record["paired"]["ours - pbr"]["psnr_pathtrace"]
+    pbr = json.loads((tmp_path / "eval" / "results" / "test-000000" / "pbr.json").read_text())
+    assert n == 1 and mean == pytest.approx(ours["psnr_pathtrace"] - pbr["psnr_pathtrace"])
     # resume: nothing is recomputed
     stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")}
     run_eval(cfg)

@@ -90,6 +90,8 @@ class EvalConfig:
     lmrm_weights: str = option("", "an LMRM .safetensors (its .json beside it) instead of the shipped one")
     doc: str = option("docs/results.md", "the results page to write ('': none); figures go beside it")
     figures: int = option(4, "objects shown in the figure grid")
+    record: str = option("bench/results/eval.jsonl", "where a JSON line with the headline numbers of the written "
+                         "page is appended ('': none)")
     allow_incomplete: bool = option(False, "write the page from the finished pairs even if some are missing")
     report_only: bool = option(False, "run nothing: write the page from the results stored so far (of a stopped or "
                                       "still running evaluation)")
@@ -227,6 +229,8 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
     doc = None
     if cfg.doc and (complete or cfg.allow_incomplete or cfg.report_only):
         doc = write_results(cfg, objects, tables, canon, Path(cfg.doc))
+        if cfg.record:
+            append_record(cfg, objects, canon, Path(cfg.record))
     return {"objects": len(objects), "finished": len(finished_objs), "complete": complete, "doc": doc}
 
 
@@ -425,6 +429,35 @@ def _git_commit() -> str:
                               check=True, cwd=Path(__file__).parent).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+HEADLINE = (("ours", "pbr"), ("ours_pbr_start_no_reg", "pbr"), ("ours_pbr_start", "pbr"), ("t3b_no_reg", "pbr"),
+            (TRUTH, "pbr"))  # fmt: skip
+HEADLINE_METRICS = ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_relight", "psnr_relight_clean", "psnr_basecolor",
+                    "psnr_latents")  # fmt: skip
+
+
+def eval_record(cfg: EvalConfig, objects: list[str], canon: dict[str, str]) -> dict[str, Any]:
+    """The machine-readable summary of a written page: per variant the mean of each metric over the finished
+    objects, and the headline paired differences (mean, standard error, n) of `HEADLINE` on `HEADLINE_METRICS`."""
+    finished = finished_objects(Path(cfg.out), objects, set(canon.values()) | {TRUTH})
+    res = load_results(Path(cfg.out), finished, canon)
+    means = {name: {m: float(np.nanmean(list(v.values()))) for m, v in rows.items() if v}
+             for name, rows in res.items()}  # fmt: skip
+    diffs = {f"{a} - {b}": {m: paired_difference(res, a, b, m) for m in HEADLINE_METRICS
+                            if not math.isnan(paired_difference(res, a, b, m)[0])}
+             for a, b in HEADLINE if a in res and b in res}  # fmt: skip
+    return {"benchmark": "eval", "timestamp": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "commit": _git_commit(), "command": command_line("neumatex eval", cfg, skip=("progress", "report_only",
+                                                                                         "allow_incomplete")),
+            "objects": len(finished), "means": means, "paired": diffs}  # fmt: skip
+
+
+def append_record(cfg: EvalConfig, objects: list[str], canon: dict[str, str], path: Path) -> None:
+    """Append `eval_record` as one JSON line to `path` (bench/results/eval.jsonl by default)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as f:
+        f.write(json.dumps(eval_record(cfg, objects, canon), allow_nan=True) + "\n")
 
 
 def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
