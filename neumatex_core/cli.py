@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -228,13 +229,13 @@ def run_export(cfg: ExportConfig) -> int:
     return 0
 
 
-def run_synth(cfg: SynthConfig) -> int:
-    """Make (or resume) a synthetic dataset split; prints where it is and whether it is complete."""
+@contextmanager
+def _object_bar(desc: str, show: bool) -> Iterator[Callable[[int, int, dict[str, Any] | None], None]]:
+    """A per-object progress bar; yields the callback `progress(done, total, record)` that the split commands
+    (synth, references) call after each object (record: its id and seconds, or None)."""
     from tqdm import tqdm
 
-    from neumatex_core.synth.dataset import generate
-
-    with tqdm(unit="object", desc=f"synth {cfg.split}", disable=not cfg.progress) as bar:
+    with tqdm(unit="object", desc=desc, disable=not show) as bar:
         def progress(done: int, total: int, record: dict[str, Any] | None) -> None:
             bar.total = total
             bar.update(done - bar.n)
@@ -242,6 +243,14 @@ def run_synth(cfg: SynthConfig) -> int:
                 bar.set_postfix(last=record["id"], s=record["seconds"])
             bar.refresh()
 
+        yield progress
+
+
+def run_synth(cfg: SynthConfig) -> int:
+    """Make (or resume) a synthetic dataset split; prints where it is and whether it is complete."""
+    from neumatex_core.synth.dataset import generate
+
+    with _object_bar(f"synth {cfg.split}", cfg.progress) as progress:
         result = generate(cfg, progress)
     state = "complete" if result.complete else "incomplete (other shards or objects missing)"
     print(f"made {len(result.made)} objects, {result.skipped} already there, in {result.seconds:.1f} s; "
@@ -251,18 +260,9 @@ def run_synth(cfg: SynthConfig) -> int:
 
 def run_references(cfg: ReferencesConfig) -> int:
     """Render (or resume) the reference halves of a synthetic split's objects; prints what was made."""
-    from tqdm import tqdm
-
     from neumatex_core.eval.reference_set import make_references
 
-    with tqdm(unit="object", desc="references", disable=not cfg.progress) as bar:
-        def progress(done: int, total: int, record: dict[str, Any] | None) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
-            if record is not None:
-                bar.set_postfix(last=record["id"], s=record["seconds"])
-            bar.refresh()
-
+    with _object_bar("references", cfg.progress) as progress:
         result = make_references(cfg, progress)
     print(f"made the references of {len(result['made'])} objects, {result['skipped']} already there "
           f"(of {result['objects']} selected), in {result['seconds']:.1f} s; spp {cfg.spp_half} x 2 per view")

@@ -102,3 +102,14 @@ def check_known_keys(cls: type, data: dict[str, Any], what: str) -> None:
     unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
     if unknown:
         raise ValueError(f"unknown {what} keys {unknown}")
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """(I, K) of a --shard option "I/K" (this process takes the items at positions i with i mod K == I), checked."""
+    try:
+        i, k = (int(x) for x in text.split("/"))
+    except ValueError:
+        raise ValueError(f"--shard: expected I/K such as 0/4, got {text!r}") from None
+    if k < 1 or not 0 <= i < k:
+        raise ValueError(f"--shard: need 0 <= I < K, got {text!r}")
+    return i, k

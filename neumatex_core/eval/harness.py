@@ -31,7 +31,7 @@ import torch
 from neumatex_core.capture import load_capture
 from neumatex_core.eval.gbuffers import GroundTruth, gbuffer_psnr, ground_truth, truth_lookup
 from neumatex_core.eval.metrics import psnr
-from neumatex_core.eval.references import clean_metrics, has_references, truth_field
+from neumatex_core.eval.references import clean_metrics, coverage_mask, harness_envmap, has_references, truth_field
 from neumatex_core.eval.variants import variant_config
 from neumatex_core.geometry.camera import PRESET_ORBIT_VIEWS
 from neumatex_core.geometry.gbuffer import render_gbuffer
@@ -50,25 +50,16 @@ def _render_psnr(object_dir: Path, field: MaterialField, views: Sequence[int], s
     """Mean PSNR_PathTrace (dB) of `field` on the capture's frames `views` against its stored photos."""
     cap = load_capture(object_dir)
     mesh = mesh_uv if mesh_uv is not None else cap.load_mesh()
-    env_scene = Scene(mesh, _envmap(cap), field)
+    env_scene = Scene(mesh, harness_envmap(cap), field)
     tracer = PathTracer(PathTracerConfig(spp=spp, max_bounces=max_bounces))
     scores = []
     for v in views:
         cam = cap.frames[v].camera
         with torch.no_grad():
             image = cap.tonemap.apply(tracer.render(env_scene, cam, seed=seed + v)).cpu()
-        mask = render_gbuffer(mesh, cam).mask
-        user = cap.load_mask(v)
-        if user is not None:
-            mask = mask & torch.as_tensor(user)
+        mask = torch.as_tensor(coverage_mask(cap, mesh, v))
         scores.append(psnr(image, torch.as_tensor(cap.load_image(v)), mask))
     return float(sum(scores) / len(scores))
-
-
-def _envmap(cap: Any) -> Any:
-    from neumatex_core.lighting.envmap import EnvironmentMap
-
-    return EnvironmentMap(cap.load_envmap(), cap.envmap_to_world, 1.0)
 
 
 def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: GroundTruth, uv_mesh: Any) -> Any:
@@ -125,7 +116,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     tto = variant_config(variant, config.tto_config())
     cap = load_capture(object_dir)
     mesh = cap.load_mesh()
-    env = _envmap(cap)
+    env = harness_envmap(cap)
     t0, c0 = time.perf_counter(), time.process_time()
     params: Parametrisation | None = None
     scene_mesh = mesh
@@ -212,7 +203,7 @@ def write_figures(folder: Path, cap: Any, field: MaterialField, gfn: Any, mesh: 
     cam = cap.frames[view].camera
     tracer = PathTracer(PathTracerConfig(spp=spp, max_bounces=bounces))
     with torch.no_grad():
-        image = cap.tonemap.apply(tracer.render(Scene(mesh, _envmap(cap), field), cam, seed=seed + view)).cpu()
+        image = cap.tonemap.apply(tracer.render(Scene(mesh, harness_envmap(cap), field), cam, seed=seed + view)).cpu()
         g = render_gbuffer(mesh, cam)
         mask = g.mask.reshape(-1)
         values = torch.ones(mask.shape[0], 9)

@@ -18,7 +18,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from neumatex_core.config import option
+from neumatex_core.config import option, parse_shard
 
 
 @dataclass
@@ -38,13 +38,7 @@ class ReferencesConfig:
 
     def shard_range(self) -> tuple[int, int]:
         """(I, K) of --shard, checked."""
-        try:
-            i, k = (int(x) for x in self.shard.split("/"))
-        except ValueError:
-            raise ValueError(f"--shard: expected I/K such as 0/4, got {self.shard!r}") from None
-        if k < 1 or not 0 <= i < k:
-            raise ValueError(f"--shard: need 0 <= I < K, got {self.shard!r}")
-        return i, k
+        return parse_shard(self.shard)
 
     def check(self) -> None:
         """ValueError naming the first bad option."""

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from neumatex_core.config import option
+from neumatex_core.config import option, parse_shard
 
 CONTENT_FIELDS = ("split", "seed", "resolution", "spp", "max_bounces", "photos", "relight_maps", "relight_spp",
                   "layered")  # fmt: skip
@@ -57,13 +57,7 @@ class SynthConfig:
 
     def shard_range(self) -> tuple[int, int]:
         """(I, K) of --shard, checked."""
-        try:
-            i, k = (int(x) for x in self.shard.split("/"))
-        except ValueError:
-            raise ValueError(f"--shard: expected I/K such as 0/4, got {self.shard!r}") from None
-        if k < 1 or not 0 <= i < k:
-            raise ValueError(f"--shard: need 0 <= I < K, got {self.shard!r}")
-        return i, k
+        return parse_shard(self.shard)
 
     def check(self) -> None:
         """ValueError naming the first bad option."""
