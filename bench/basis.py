@@ -9,9 +9,12 @@ Figures:
    each shared environment map, at equal samples per pixel, one bounce (a sphere is convex): PSNR after the
    default tonemap over the sphere's pixels, mean and minimum over `--per-family` materials x maps (goal: 35 dB
    in every family). Both renders use next-event estimation with the same seed (common random numbers: the same
-   light samples), so their difference is the BSDF difference, not two independent noises; the same comparison
-   with a second seed shows how converged the figure is. For scale, the noise floor of independent rendering
-   (the analytic material against itself with another seed, MIS) is printed too.
+   light samples), so most of the noise cancels in their difference d = T(neural) - T(analytic); what is left is
+   removed by a second, independent pair of renders: mean(d_a d_b) over the sphere is an unbiased estimate of the
+   squared difference of the noise-free display images (E[d_a d_b] = E[d_a] E[d_b]), the same correction as
+   `eval.references.clean_psnr` applies to independent halves. "clean" is -10 log10 of it, "raw" the PSNR of
+   one pair as it is. For scale, the noise floor of independent rendering (the analytic material against itself
+   with another seed, MIS) is printed too.
 3. Importance sampling: per (material, wo) the variance of the albedo estimator f cos / pdf with the neural
    sampler (NeuralMaterial.sample) against cosine sampling at equal samples; ratio var_cosine / var_neural
    (> 1: ours better), median and geometric mean; the analytic material's own sampler as a reference.
@@ -21,6 +24,7 @@ Figures:
 
     .venv/bin/python bench/basis.py            # ~5 min on an idle 2-core CPU
     .venv/bin/python bench/basis.py --quick    # smoke run
+    .venv/bin/python bench/basis.py --weights runs/basis/basis.safetensors   # a candidate, not the shipped one
 """
 
 from __future__ import annotations
@@ -45,13 +49,26 @@ from neumatex_core.lighting.envmap import EnvironmentMap  # noqa: E402
 from neumatex_core.materials.base import cosine_pdf, cosine_sample  # noqa: E402
 from neumatex_core.materials.basis_training import EPS, _generator, draw_batch, log_target  # noqa: E402
 from neumatex_core.materials.layered import LayeredMaterial  # noqa: E402
-from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial, direction_features, load_basis  # noqa: E402
+from neumatex_core.materials.neural_basis import (  # noqa: E402
+    NeuralBasis,
+    NeuralMaterial,
+    direction_features,
+    load_basis,
+    load_basis_from,
+)
 from neumatex_core.materials.prior import FAMILIES, sample_base_color, sample_parameters  # noqa: E402
 from neumatex_core.render.gallery import SphereSettings, sphere_pair  # noqa: E402
 
 SHARED = Path(os.environ.get("NEUMATEX_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 ENVMAPS = SHARED / "data" / "envmaps"
 BENCH_SEED = 777_001  # held-out draws: training uses other seeds (basis_training._generator)
+
+
+def paired_clean_mse(d_a: np.ndarray, d_b: np.ndarray) -> tuple[float, float]:
+    """(clean MSE, its standard error) from two independent difference images d_a, d_b [P, 3] (display units):
+    mean(d_a d_b), an unbiased estimate of mean((E d)^2); SE over pixels (a pixel's channels share paths)."""
+    per_pixel = (d_a * d_b).mean(-1)
+    return float(per_pixel.mean()), float(per_pixel.std(ddof=1) / np.sqrt(per_pixel.shape[0]))
 
 
 def errors(basis: NeuralBasis, params: torch.Tensor, seed: int) -> dict[str, float]:
@@ -122,12 +139,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="smoke run: fewer sets, 1 map, 24 px, 32 spp")
     parser.add_argument("--no-save", action="store_true")
+    parser.add_argument("--weights", type=Path, default=None,
+                        help="a basis .safetensors to measure instead of the shipped one (its .json beside it)")
     args = parser.parse_args(argv)
     if args.quick:
         args.heldout, args.per_family, args.resolution, args.spp, args.repeats = 800, 1, 24, 32, 2
         args.envmaps = args.envmaps or str(ENVMAPS / "studio.exr")
     map_paths = [Path(p) for p in args.envmaps.split(",")] if args.envmaps else sorted(ENVMAPS.glob("*.exr"))
-    basis = load_basis()
+    basis = load_basis() if args.weights is None else load_basis_from(args.weights, args.weights.with_suffix(".json"))
     print(f"basis {basis.basis_id}")
 
     # 1. held-out errors, overall and per family
@@ -153,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     for family in FAMILIES:
         params = sample_parameters(family, args.per_family, gm)
         colors = sample_base_color(family, args.per_family, gm)
-        raw, raw_b, floor = [], [], []
+        raw, clean, clean_se, floor = [], [], [], []
         for path in map_paths:
             env = EnvironmentMap.from_file(path)
             for i in range(args.per_family):
@@ -161,16 +180,21 @@ def main(argv: list[str] | None = None) -> int:
                 analytic_b, neural_b = sphere_pair(params[i], colors[i], env, basis, settings_b, sphere)
                 mask = analytic.sum(-1) > 0
                 raw.append(psnr(tonemap(neural), tonemap(analytic), mask))
-                raw_b.append(psnr(tonemap(neural_b), tonemap(analytic_b), mask))
+                d_a = (tonemap(neural) - tonemap(analytic))[mask].cpu().numpy()
+                d_b = (tonemap(neural_b) - tonemap(analytic_b))[mask].cpu().numpy()
+                mse, se = paired_clean_mse(d_a, d_b)
+                clean.append(-10 * np.log10(max(mse, 1e-10)))
+                clean_se.append(se / max(mse, 1e-10) * 10 / np.log(10))  # dB, first order
                 if i == 0:
                     ma, _ = sphere_pair(params[i], colors[i], env, basis, mis_a, sphere)
                     mb, _ = sphere_pair(params[i], colors[i], env, basis, mis_b, sphere)
                     floor.append(psnr(tonemap(ma), tonemap(mb), mask))
-        psnr_rows[family] = {"psnr_mean": float(np.mean(raw)), "psnr_min": float(np.min(raw)),
-                             "psnr_mean_seed_b": float(np.mean(raw_b)),
+        psnr_rows[family] = {"psnr_mean": float(np.mean(clean)), "psnr_min": float(np.min(clean)),
+                             "psnr_se_max": float(np.max(clean_se)), "raw_psnr_mean": float(np.mean(raw)),
                              "independent_noise_floor_mean": float(np.mean(floor))}  # fmt: skip
-        print(f"  {family:11s} sphere PSNR neural vs analytic {np.mean(raw):5.1f} dB (min {np.min(raw):5.1f}); "
-              f"second seed {np.mean(raw_b):5.1f} dB; independent-noise floor at this spp {np.mean(floor):5.1f} dB")
+        print(f"  {family:11s} sphere PSNR neural vs analytic, clean {np.mean(clean):5.1f} dB "
+              f"(min {np.min(clean):5.1f}, SE <= {np.max(clean_se):.2f}); raw {np.mean(raw):5.1f} dB; "
+              f"independent-noise floor at this spp {np.mean(floor):5.1f} dB")
 
     # 3. sampling
     sampling = sampling_variance(basis, 1024 if not args.quick else 128, 256, BENCH_SEED + 3)
@@ -196,16 +220,17 @@ def main(argv: list[str] | None = None) -> int:
           f"= {mlp_rate * flops / peak:.3f} of peak {peak / 1e9:.1f} GFLOP/s (4096^2 matmul); "
           f"bsdf() with features {bsdf_rate:.3e} evals/s = {bsdf_rate * flops / peak:.3f} of peak")
 
-    print("\n| family | PSNR neural vs analytic (dB, mean / min) | second seed (dB) | BSDF median rel. err. | T MAE |"
+    print("\n| family | clean PSNR neural vs analytic (dB, mean / min) | raw (dB) | BSDF median rel. err. | T MAE |"
           " R MAE |")
     print("|---|---|---|---|---|---|")
     for family in FAMILIES:
         p, e = psnr_rows[family], per_family_err[family]
-        print(f"| {family} | {p['psnr_mean']:.1f} / {p['psnr_min']:.1f} | {p['psnr_mean_seed_b']:.1f} | "
+        print(f"| {family} | {p['psnr_mean']:.1f} / {p['psnr_min']:.1f} | {p['raw_psnr_mean']:.1f} | "
               f"{e['bsdf_median_rel_error']:.3f} | {e['t_mae']:.4f} | {e['r_mae']:.4f} |")
     if not args.no_save:
         path = write_result("basis", {
-            "basis_id": basis.basis_id, "args": vars(args), "envmaps": [p.name for p in map_paths],
+            "basis_id": basis.basis_id, "envmaps": [p.name for p in map_paths],
+            "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
             "heldout": overall, "heldout_per_family": per_family_err, "sphere_psnr": psnr_rows,
             "sampling": sampling,
             "speed": {"decoder_flops_per_eval": flops, "mlp_evals_per_s": mlp_rate, "bsdf_evals_per_s": bsdf_rate,

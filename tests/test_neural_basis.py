@@ -76,6 +76,36 @@ def test_asset_basis_id_check(basis) -> None:  # type: ignore[no-untyped-def]
         check_basis_id("nmx-basis-v0-000000000000", "0" * 64, basis)
 
 
+def test_another_installed_basis_is_found_by_id(tmp_path: Path, basis, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """An asset made with a basis other than the default still decodes when that basis is installed in
+    data/bases/ (here: a copy of the shipped weights under another id); an unknown id is refused by name."""
+    import neumatex_core.materials.neural_basis as nb
+
+    extra = tmp_path / "bases"
+    extra.mkdir()
+    other = nb.NeuralBasis(basis.arch)
+    other.load_state_dict(basis.state_dict())
+    with torch.no_grad():
+        other.decoder[-1].bias += 0.5  # a different basis (f_neu x e^0.5), so a different hash and id
+    other_id = other.save(extra / "v0.safetensors", extra / "v0.json", {}, "v0")
+    monkeypatch.setattr(nb, "EXTRA_DIR", extra)
+    nb.load_basis.cache_clear()
+    try:
+        assert set(nb.installed_bases()) == {basis.basis_id, other_id}
+        found = check_basis_id(other_id, other.content_hash, basis)
+        assert found.basis_id == other_id and found is nb.load_basis("cpu", other_id)
+        assert check_basis_id(basis.basis_id, basis.content_hash, basis) is basis
+        wi = wo = torch.tensor([[0.0, 0.0, 1.0]])
+        latent = torch.zeros(1, basis.arch.latent_dim)
+        assert torch.allclose(found.bsdf(latent, wi, wo), basis.bsdf(latent, wi, wo) * math.exp(0.5), rtol=1e-5)
+        with pytest.raises(BasisError, match="does not match|needs neural basis"):
+            check_basis_id(other_id, "f" * 64, basis)  # the id is installed, the hash is not its
+        with pytest.raises(BasisError, match="not installed"):
+            nb.load_basis("cpu", "nmx-basis-v9-000000000000")
+    finally:
+        nb.load_basis.cache_clear()
+
+
 def _reference_directions(
     wo: torch.Tensor, alphas: torch.Tensor, g: torch.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -238,3 +268,17 @@ def test_gallery_command_writes_a_labelled_png(tmp_path: Path, shared_data: Path
     image = read_image(out)
     assert image.shape[0] > 16 * len(FAMILIES) and image.shape[1] > 2 * 16  # a row per family, 2 columns per map
     assert main(["gallery", "--out", str(out), "--envmaps", str(tmp_path / "missing.exr")]) == 2
+
+
+def test_every_shipped_basis_loads_and_matches_its_record() -> None:
+    """Each basis in data/ and data/bases/ loads with its SHA-256 checked and decodes a finite, non-negative BSDF."""
+    import neumatex_core.materials.neural_basis as nb
+
+    bases = nb.installed_bases()
+    assert len(bases) >= 2  # v1 (the default) and v2
+    for basis_id in bases:
+        b = nb.load_basis("cpu", basis_id)
+        assert b.basis_id == basis_id
+        wi = torch.nn.functional.normalize(torch.tensor([[0.3, 0.1, 0.9]]), dim=-1)
+        f = b.bsdf(torch.zeros(1, b.arch.latent_dim), wi, wi)
+        assert torch.isfinite(f).all() and (f >= 0).all()

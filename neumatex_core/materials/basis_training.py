@@ -4,15 +4,20 @@ Three stages, each drawing fresh samples every step (the analytic material is ch
 
 1. `bsdf`: encoder + decoder jointly. Loss: L1 between log(f cos_i + EPS) of the decoder and of the analytic
    f_spec, so the lobe peaks and tails both count (relative error) while values far below what a render can see
-   (EPS) do not.
+   (EPS) do not. Options added for basis v2 (docs/design-notes.md, "basis v2"): `aux_weight` > 0 trains the
+   auxiliary network in this stage too, so the latent must also carry what T_neu needs (v1's latent did not: an
+   aux network retrained on it stayed at T MAE 0.10 on clear coats, the largest error of coated spheres);
+   `chroma_weight` adds the L1 of the log-chromaticity (log f_c minus its channel mean), which pushes the
+   specular colour into the latent (v1's latent let a conductor's F0 hue be decoded only to 0.07 MAE: gold came
+   out grey); `init` starts from a trained basis instead of random weights.
 2. `aux`: the auxiliary network (T_neu, R_neu) against the analytic T(wo) and R(wo); encoder and decoder frozen.
 3. `sampler`: the sampling network, by maximum likelihood of directions distributed like lum(f_neu) cos_i (the
    frozen decoder): wi drawn from the analytic material's sampler with weights lum(f_neu cos_i) / pdf, loss the
    weighted negative log of the mixture pdf (a KL divergence up to a constant).
 
-Samples: parameters from the family prior (3/4, families equally likely) or uniform in [0, 1]^22 (1/4, for
-coverage of the latent space that optimisation may wander into); wo uniform on the hemisphere; wi half from the
-analytic material's importance sampler (the peaks), half uniform (the tails).
+Samples: parameters from the family prior (families equally likely) or uniform in [0, 1]^22 (`uniform_share`,
+1/4 in v1, for coverage of the latent space that optimisation may wander into); wo uniform on the hemisphere; wi
+half from the analytic material's importance sampler (the peaks), half uniform (the tails).
 
 Deterministic: step k of a stage draws from a generator seeded by (seed, stage, k), so an interrupted run that is
 resumed from its checkpoint ends with the same weights as an uninterrupted one (same device and thread count).
@@ -53,6 +58,10 @@ class TrainBasisConfig:
     checkpoint_every: int = option(500, "steps between checkpoints")
     heldout: int = option(10000, "held-out parameter sets for the final metrics")
     version: str = option("v1", "basis version label (part of the basis id)")
+    uniform_share: float = option(0.25, "share of parameter sets drawn uniformly instead of from the family prior")
+    aux_weight: float = option(0.0, "weight of the T/R loss in the bsdf stage (0: the aux network trains alone)")
+    chroma_weight: float = option(0.0, "weight of the log-chromaticity L1 in the bsdf stage")
+    init: str = option("", "start from these basis weights (.safetensors) instead of random ones")
     install: bool = option(False, "also copy the trained weights into the package (neumatex_core/materials/data)")
     device: str = option("auto", "torch device: auto, cpu or cuda")
 
@@ -61,9 +70,10 @@ def _generator(seed: int, stage: str, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + STAGE_SEED[stage] * 100_000_007 + step)
 
 
-def draw_parameters(n: int, g: torch.Generator) -> torch.Tensor:
-    """[n, 22]: 3/4 from the family prior (families equally likely), 1/4 uniform in [0, 1]."""
-    n_uniform = n // 4
+def draw_parameters(n: int, g: torch.Generator, uniform_share: float = 0.25) -> torch.Tensor:
+    """[n, 22]: a share `uniform_share` uniform in [0, 1] (roughness floored), the rest from the family prior
+    (families equally likely), shuffled."""
+    n_uniform = int(n * uniform_share)
     per_family = (n - n_uniform + len(FAMILIES) - 1) // len(FAMILIES)
     prior = torch.cat([sample_parameters(f, per_family, g) for f in FAMILIES])[: n - n_uniform]
     uniform = torch.rand(n_uniform, N_PARAMS, generator=g)
@@ -93,11 +103,11 @@ class Batch:
     reflected: torch.Tensor  # [N]
 
 
-def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None) -> Batch:
+def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, uniform_share: float = 0.25) -> Batch:
     """Training samples on the CPU (the analytic material's tables live there): see the module docstring.
 
     params: [n, 22] to use instead of `draw_parameters` (e.g. one family's, for per-family metrics)."""
-    params = draw_parameters(n, g) if params is None else params
+    params = draw_parameters(n, g, uniform_share) if params is None else params
     wo = uniform_hemisphere(n, g)
     material = LayeredMaterial(params, torch.zeros(n, 3))  # no base: sampling follows f_spec's lobes
     wi_imp, _ = material.sample(wo, torch.rand(n, generator=g), torch.rand(n, 2, generator=g))
@@ -116,18 +126,31 @@ def log_target(f: torch.Tensor, cos_i: torch.Tensor) -> torch.Tensor:
     return torch.log(f * cos_i.unsqueeze(-1) + EPS)
 
 
-def bsdf_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
+def bsdf_loss(basis: NeuralBasis, b: Batch, aux_weight: float = 0.0, chroma_weight: float = 0.0) -> torch.Tensor:
+    """Log-L1 of f cos_i (+ aux_weight x `aux_terms`, + chroma_weight x the log-chromaticity L1)."""
     latent = basis.encode(b.params)
     f = torch.exp(basis.log_bsdf(latent, b.wi, b.wo).clamp(max=12.0))
     cos_i = b.wi[:, 2]
-    return (log_target(f, cos_i) - log_target(b.f_spec, cos_i)).abs().mean()
+    log_f, log_t = log_target(f, cos_i), log_target(b.f_spec, cos_i)
+    loss = (log_f - log_t).abs().mean()
+    if chroma_weight > 0:
+        chroma = (log_f - log_f.mean(-1, keepdim=True)) - (log_t - log_t.mean(-1, keepdim=True))
+        loss = loss + chroma_weight * chroma.abs().mean()
+    if aux_weight > 0:
+        loss = loss + aux_weight * aux_terms(basis, latent, b)
+    return loss
+
+
+def aux_terms(basis: NeuralBasis, latent: torch.Tensor, b: Batch) -> torch.Tensor:
+    """Mean |T_neu - T| + mean |R_neu - R| at the batch's wo."""
+    t, r = basis.transmission_reflectance(latent, b.wo)
+    return (t - b.transmission).abs().mean() + (r - b.reflected).abs().mean()
 
 
 def aux_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
     with torch.no_grad():
         latent = basis.encode(b.params)
-    t, r = basis.transmission_reflectance(latent, b.wo)
-    return (t - b.transmission).abs().mean() + (r - b.reflected).abs().mean()
+    return aux_terms(basis, latent, b)
 
 
 def sampler_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
@@ -145,14 +168,16 @@ def sampler_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
     return -(weight * torch.log(q + 1e-6)).sum()
 
 
-LOSSES: dict[str, Callable[[NeuralBasis, Batch], torch.Tensor]] = {
-    "bsdf": bsdf_loss, "aux": aux_loss, "sampler": sampler_loss,
-}
-
-
-def stage_parameters(basis: NeuralBasis, stage: str) -> list[torch.nn.Parameter]:
+def stage_loss(cfg: TrainBasisConfig, stage: str, basis: NeuralBasis, b: Batch) -> torch.Tensor:
     if stage == "bsdf":
-        return [*basis.encoder.parameters(), *basis.decoder.parameters()]
+        return bsdf_loss(basis, b, cfg.aux_weight, cfg.chroma_weight)
+    return aux_loss(basis, b) if stage == "aux" else sampler_loss(basis, b)
+
+
+def stage_parameters(basis: NeuralBasis, stage: str, aux_weight: float = 0.0) -> list[torch.nn.Parameter]:
+    if stage == "bsdf":
+        joint = list(basis.aux.parameters()) if aux_weight > 0 else []
+        return [*basis.encoder.parameters(), *basis.decoder.parameters(), *joint]
     if stage == "aux":
         return list(basis.aux.parameters())
     return list(basis.sampler.parameters())
@@ -200,6 +225,10 @@ def train_basis(
     ckpt_path = out / "checkpoint.pt"
     torch.manual_seed(cfg.seed)
     basis = NeuralBasis(BasisArchitecture()).to(device)
+    if cfg.init:
+        from safetensors.torch import load_file
+
+        basis.load_state_dict(load_file(cfg.init))  # the shapes must match BasisArchitecture()
     history: dict[str, list[float]] = {s: [] for s in STAGES}
     seconds: dict[str, float] = {s: 0.0 for s in STAGES}
     start_stage, start_step, opt_state = 0, 0, None
@@ -213,7 +242,7 @@ def train_basis(
     steps = {"bsdf": cfg.steps_bsdf, "aux": cfg.steps_aux, "sampler": cfg.steps_sampler}
     for si in range(start_stage, len(STAGES)):
         stage = STAGES[si]
-        params = stage_parameters(basis, stage)
+        params = stage_parameters(basis, stage, cfg.aux_weight)
         opt = torch.optim.Adam(params, lr=cfg.lr)
         lr_factor = _cosine_schedule(steps[stage])
         first = 0
@@ -223,8 +252,8 @@ def train_basis(
         basis.train()
         t0 = time.perf_counter()
         for step in range(first, steps[stage]):
-            b = _to(draw_batch(cfg.batch, _generator(cfg.seed, stage, step)), device)
-            loss = LOSSES[stage](basis, b)
+            b = _to(draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share), device)
+            loss = stage_loss(cfg, stage, basis, b)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             for group in opt.param_groups:
@@ -258,4 +287,8 @@ def _cosine_schedule(total: int) -> Callable[[int], float]:
 def _schedule(cfg: TrainBasisConfig) -> dict[str, object]:
     """The parts of the config that determine the weights (a checkpoint must match them to be resumed)."""
     d = asdict(cfg)
-    return {k: d[k] for k in ("seed", "batch", "steps_bsdf", "steps_aux", "steps_sampler", "lr")}
+    keys = ["seed", "batch", "steps_bsdf", "steps_aux", "steps_sampler", "lr"]
+    v1 = TrainBasisConfig()
+    # v2's options enter the schedule only when set, so v1's record (and checkpoints) keep their meaning
+    keys += [k for k in ("uniform_share", "aux_weight", "chroma_weight", "init") if d[k] != getattr(v1, k)]
+    return {k: d[k] for k in keys}

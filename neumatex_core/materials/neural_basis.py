@@ -18,7 +18,9 @@ and the training loss lives in log space.
 
 Shipped weights (`data/basis.safetensors`) carry a basis id; `data/basis.json` records the id, the SHA-256 of the
 weights file and the training metrics. `load_basis` checks the hash, so an asset that names a basis id and hash
-can only be decoded by exactly that basis.
+can only be decoded by exactly that basis. `data/basis.*` is the default basis (what new extractions, synthetic
+data and the LMRM use); further bases live in `data/bases/<name>.safetensors|json` and are loaded by id
+(`load_basis(basis_id=...)`, `check_basis_id`), so an asset made with another installed basis still decodes.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from neumatex_core.materials.microfacet import ALPHA_MIN, ggx_pdf_visible, ggx_s
 DATA_DIR = Path(__file__).resolve().parent / "data"
 DEFAULT_WEIGHTS = DATA_DIR / "basis.safetensors"
 DEFAULT_RECORD = DATA_DIR / "basis.json"
+EXTRA_DIR = DATA_DIR / "bases"  # further installed bases, found by id
 LATENT_DIM = 6
 N_DIR_FEATURES = 11
 P_COSINE_MIN = 0.1  # the cosine component keeps this share of the sampling mixture (no unreachable direction)
@@ -157,10 +160,27 @@ def load_basis_from(weights: Path, record: Path, device: torch.device | str = "c
     return basis.to(device).eval()
 
 
-@lru_cache(maxsize=4)
-def load_basis(device: str = "cpu") -> NeuralBasis:
-    """The shipped basis (cached per device), frozen."""
-    return load_basis_from(DEFAULT_WEIGHTS, DEFAULT_RECORD, device)
+def installed_bases() -> dict[str, tuple[Path, Path]]:
+    """basis id -> (weights, record) of every installed basis: the default one, then those in `EXTRA_DIR`."""
+    bases: dict[str, tuple[Path, Path]] = {}
+    for record in [DEFAULT_RECORD, *sorted(EXTRA_DIR.glob("*.json"))]:
+        try:
+            info = json.loads(record.read_text())
+            bases.setdefault(str(info["basis_id"]), (record.with_name(str(info["weights"])), record))
+        except (OSError, ValueError, KeyError) as exc:
+            raise BasisError(f"{record}: not a basis record ({exc})") from None
+    return bases
+
+
+@lru_cache(maxsize=8)
+def load_basis(device: str = "cpu", basis_id: str | None = None) -> NeuralBasis:
+    """An installed basis (cached per device and id), frozen: the default one, or the one named `basis_id`."""
+    if basis_id is None:
+        return load_basis_from(DEFAULT_WEIGHTS, DEFAULT_RECORD, device)
+    bases = installed_bases()
+    if basis_id not in bases:
+        raise BasisError(f"neural basis {basis_id} is not installed (installed: {', '.join(bases)})")
+    return load_basis_from(*bases[basis_id], device)
 
 
 def basis_record(record: Path = DEFAULT_RECORD) -> dict[str, object]:
@@ -169,12 +189,18 @@ def basis_record(record: Path = DEFAULT_RECORD) -> dict[str, object]:
 
 
 def check_basis_id(basis_id: str, content_hash: str, basis: NeuralBasis | None = None) -> NeuralBasis:
-    """The basis an asset names, or a BasisError saying which one it needs and which one we have."""
+    """The basis an asset names (`basis` or the default when it is that one, else the installed basis with that id),
+    or a BasisError saying which one it needs and which one we have."""
     have = basis or load_basis()
-    if basis_id != have.basis_id or (content_hash and content_hash != have.content_hash):
-        raise BasisError(f"needs neural basis {basis_id} (sha256 {content_hash[:12]}...), but this installation has "
-                         f"{have.basis_id}; install the NeuMatEx version that wrote it")
-    return have
+    if basis_id == have.basis_id and (not content_hash or content_hash == have.content_hash):
+        return have
+    if basis_id in installed_bases():
+        found = load_basis(str(next(have.parameters()).device), basis_id)
+        if not content_hash or content_hash == found.content_hash:
+            return found
+    installed = ", ".join(installed_bases())
+    raise BasisError(f"needs neural basis {basis_id} (sha256 {content_hash[:12]}...), but this installation has "
+                     f"{installed}; install the NeuMatEx version that wrote it")
 
 
 class NeuralMaterial(Material):
