@@ -315,6 +315,7 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="neumatex", description="Neural material extraction (NeuMatEx).")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an input error")
     sub = parser.add_subparsers(dest="command", required=True)
     p_validate = sub.add_parser("validate", help="check a capture folder or zip; lists every problem")
     p_validate.add_argument("capture", help="capture folder, transforms.json or .zip")
@@ -336,15 +337,18 @@ def main(argv: list[str] | None = None) -> int:
             print("error: the job service (services/) is not installed beside neumatex_core", file=sys.stderr)
             return 2
         return subprocess.call([sys.executable, "-m", "services", "serve", *args.args])
-    if args.command == "validate":
-        from neumatex_core.capture import run_validate
-
-        return run_validate(args.capture)
-    cls, run = COMMANDS[args.command]
     try:
+        if args.command == "validate":
+            from neumatex_core.capture import run_validate
+
+            return run_validate(args.capture)
+        cls, run = COMMANDS[args.command]
         return run(config_from_args(cls, args))
-    except (ValueError, OSError) as exc:  # our errors (MeshError, EnvmapError, CaptureError, ...) are ValueErrors
-        print(f"error: {exc}", file=sys.stderr)
+    # our errors (MeshError, EnvmapError, CaptureError, ...) are ValueErrors; RecursionError: absurdly nested input
+    except (ValueError, OSError, RecursionError) as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc} (--debug shows the traceback)", file=sys.stderr)
         return 2
 
 

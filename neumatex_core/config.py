@@ -41,10 +41,11 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             default = f.default_factory()
         else:
             default = None
-        helptext = f"{f.metadata.get('help', '')} (default: {default})"
+        text = str(f.metadata.get("help", "")).replace("%", "%%")  # argparse %-formats help strings
+        helptext = f"{text} (default: {str(default).replace('%', '%%')})"
         if f.metadata.get("positional"):
             parser.add_argument(f.name + POSITIONAL_SUFFIX, nargs="?", default=None, metavar=f.name.upper(),
-                                help=f"{f.metadata.get('help', '')} (same as {flag})")
+                                help=f"{text} (same as {flag})")
         if typ is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default, help=helptext)
         elif typing.get_origin(typ) is tuple:
@@ -94,6 +95,47 @@ def command_line(program: str, config: Any, skip: tuple[str, ...] = ()) -> str:
                 values = value if isinstance(value, tuple) else (value,)
                 flags.append(" ".join([flag, *(shlex.quote(str(v)) for v in values)]))
     return " ".join(words + flags)
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The allowed values of a numeric config field: lo <= x <= hi (lo < x when lo_open). Written once beside the
+    config (e.g. `TTOConfig` -> `tto.config.RANGES`); `check_ranges` applies it and the job service turns it into
+    the bounds of its request model (services/jobconfig.py)."""
+
+    lo: float
+    hi: float
+    lo_open: bool = False
+
+    def __contains__(self, x: object) -> bool:
+        if not isinstance(x, int | float) or isinstance(x, bool):
+            return False
+        return (self.lo < x if self.lo_open else self.lo <= x) and x <= self.hi
+
+    def describe(self) -> str:
+        return f"{'>' if self.lo_open else '>='} {self.lo:g} and <= {self.hi:g}"
+
+
+def check_ranges(config: Any, ranges: dict[str, Range], what: str) -> None:
+    """ValueError naming the first field of `config` outside its Range (`what`: the config's name in messages)."""
+    for name, allowed in ranges.items():
+        value = getattr(config, name)
+        if value not in allowed:
+            raise ValueError(f"{what} {name} must be {allowed.describe()}, got {value!r}")
+
+
+def literal_choices(cls: type) -> dict[str, tuple[Any, ...]]:
+    """The allowed values of every Literal-typed field of the dataclass `cls`."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: typing.get_args(hints[f.name]) for f in dataclasses.fields(cls)
+            if typing.get_origin(hints[f.name]) is typing.Literal}  # fmt: skip
+
+
+def check_choices(config: Any, what: str) -> None:
+    """ValueError naming the first Literal-typed field of the dataclass instance `config` holding another value."""
+    for name, allowed in literal_choices(type(config)).items():
+        if getattr(config, name) not in allowed:
+            raise ValueError(f"{what} {name} must be one of {allowed}, got {getattr(config, name)!r}")
 
 
 def check_known_keys(cls: type, data: dict[str, Any], what: str) -> None:

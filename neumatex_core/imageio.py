@@ -40,6 +40,18 @@ def read_image(path: str | Path) -> np.ndarray:
     return arr
 
 
+def is_float_image(path: str | Path) -> bool:
+    """Whether the file stores floating-point pixels (EXR, HDR, float TIFF): linear HDR, not display-encoded."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ImageError(f"{path}: cannot be read as an image ({oiio.geterror() or 'unknown format'})")
+    basetype = inp.spec().format.basetype
+    inp.close()
+    return basetype in (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+
+
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) from the file header, without reading pixels."""
     import OpenImageIO as oiio

@@ -40,7 +40,7 @@ import torch
 
 from neumatex_core.capture import Capture, CaptureError, load_capture, validate_capture
 from neumatex_core.capture.tonemap import Tonemap
-from neumatex_core.config import check_known_keys
+from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
 from neumatex_core.fields.decoders import DECODERS, MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.geometry.camera import Camera, preset_views
@@ -49,7 +49,7 @@ from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
 from neumatex_core.materials.neural_basis import load_basis
-from neumatex_core.tto.config import TTOConfig
+from neumatex_core.tto.config import PRESETS, TTOConfig  # an extract preset uses the TTO preset of its name
 from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.pbr_start import solve
 
@@ -58,6 +58,11 @@ DONE = "done.json"
 ASSET_DIR = "asset"
 PRESET_TOLERANCE = 1e-3  # max |c2w difference| for a frame to count as a preset view
 RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when no LMRM is available
+# The allowed values of ExtractConfig's numeric fields (ExtractConfig.check; the job service's bounds).
+RANGES: dict[str, Range] = {
+    "view_resolution": Range(16, 1024), "blend_k": Range(1, 64), "texture_resolution": Range(16, 8192),
+    "preview_resolution": Range(16, 4096), "preview_spp": Range(1, 4096), "eval_photos": Range(0, 1000),
+    "eval_spp": Range(1, 4096), "seed": Range(0, 2**31 - 1)}  # fmt: skip
 
 
 class PipelineError(Exception):
@@ -105,13 +110,14 @@ class ExtractConfig:
     eval_photos: int = 4
     eval_spp: int = 16
     lmrm_weights: str = ""
-    device: str = "auto"
+    device: Literal["auto", "cpu", "cuda"] = "auto"
     seed: int = 0
     name: str = ""
 
     @classmethod
-    def preset(cls, name: str, **overrides: Any) -> ExtractConfig:
-        """'tiny' (tests: seconds), 'cpu' (default: minutes on 2 cores) or 'gpu' (quality), with field overrides."""
+    def preset(cls, name: str, /, **overrides: Any) -> ExtractConfig:
+        """'tiny' (tests: seconds), 'cpu' (default: minutes on 2 cores) or 'gpu' (quality), with field overrides
+        (`name=` among them: the asset's name)."""
         if name == "tiny":
             base = cls(preset_name=name, tto=TTOConfig.preset("tiny"), view_resolution=32, texture_resolution=64,
                        preview_resolution=32, preview_spp=2, eval_photos=1, eval_spp=2)  # fmt: skip
@@ -122,8 +128,19 @@ class ExtractConfig:
             base = cls(preset_name=name, tto=TTOConfig.preset("gpu"), view_resolution=128, texture_resolution=1024,
                        preview_resolution=512, preview_spp=256, eval_photos=23, eval_spp=128)  # fmt: skip
         else:
-            raise ValueError(f"unknown extract preset {name!r} (expected tiny, cpu or gpu)")
+            raise ValueError(f"unknown extract preset {name!r} (expected one of {', '.join(PRESETS)})")
         return replace(base, **overrides)
+
+    def check(self) -> None:
+        """ValueError naming the first bad field of a config that is to make an asset: the numeric ranges, the
+        choices, the TTO config, and no evaluation-only TTO variant (which the tto or export stage would refuse)."""
+        check_ranges(self, RANGES, "config")
+        check_choices(self, "config")
+        tto = self.tto_config()
+        tto.check()
+        problem = evaluation_only(tto)
+        if problem:
+            raise ValueError(problem)
 
     def tto_config(self) -> TTOConfig:
         """The TTO config with this config's init switch and seed."""
@@ -409,6 +426,15 @@ def _photo_set(norm: _Normalised, device: torch.device) -> PhotoSet:
     return PhotoSet(images, norm.cameras, norm.mesh, masks, device)
 
 
+def evaluation_only(tto: TTOConfig) -> str:
+    """Why the TTO variant `tto` makes no asset (an evaluation variant: `neumatex eval`), or "" when it does."""
+    if tto.reg == "oracle":
+        return "TTO reg='oracle' needs ground-truth G-buffers; it is an evaluation variant (neumatex eval)"
+    if tto.material != "neural":
+        return "TTO material='pbr' is the PBR baseline for evaluation; an asset holds a neural material"
+    return ""
+
+
 def effective_tto(config: ExtractConfig, trained: bool) -> TTOConfig:
     """The TTO config actually run: without a trained LMRM there is no anchor, so reg is "none"."""
     tto = config.tto_config()
@@ -424,7 +450,7 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
     pred, record = load_prediction(work, device)
     tto = effective_tto(config, bool(record["trained"]))
     if tto.reg == "oracle":
-        raise PipelineError("reg='oracle' needs ground-truth G-buffers; it is an evaluation variant (neumatex eval)")
+        raise PipelineError(evaluation_only(tto))
     with _open_capture(capture) as cap:
         norm = _normalised(cap, work, device)
         photos = _photo_set(norm, device)

@@ -1,8 +1,10 @@
-"""`python -m services serve|api|worker|create-tenant|reap` (also `make serve`).
+"""`python -m services serve|api|worker|create-tenant|set-limits|reap` (also `make serve`).
 
 serve: starts redis-server (from apt) when nothing answers at NEUMATEX_REDIS_URL, the API (uvicorn) and one
 Celery worker on this machine with the embedded defaults (SQLite, local storage under data/service), creates a
-tenant with a printed API key unless NEUMATEX_BOOTSTRAP_API_KEY is set, and prints the dashboard URL.
+tenant with a printed API key unless NEUMATEX_BOOTSTRAP_API_KEY is set, and prints the dashboard URL. It
+supervises them (services/supervisor.py): a child that dies is restarted, and one that keeps dying stops
+everything with the reason printed.
 """
 
 from __future__ import annotations
@@ -10,12 +12,11 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import signal
-import subprocess
 import sys
-import time
 from pathlib import Path
 from urllib.parse import urlparse
+
+from services.supervisor import Child, Supervisor
 
 
 def redis_up(url: str) -> bool:
@@ -30,8 +31,8 @@ def redis_up(url: str) -> bool:
         return False
 
 
-def start_redis(url: str, folder: Path) -> subprocess.Popen[bytes] | None:
-    """Start redis-server (append-only file on, so queued messages survive a restart) when none answers."""
+def redis_child(url: str, folder: Path) -> Child | None:
+    """redis-server to start (append-only file on, so queued messages survive a restart) when none answers."""
     if redis_up(url):
         return None
     exe = shutil.which("redis-server")
@@ -42,15 +43,9 @@ def start_redis(url: str, folder: Path) -> subprocess.Popen[bytes] | None:
     if u.hostname not in ("127.0.0.1", "localhost"):
         sys.exit(f"no Redis answers at {url} and it is not on this machine, so it cannot be started here")
     folder.mkdir(parents=True, exist_ok=True)
-    proc = subprocess.Popen([exe, "--port", str(u.port or 6379), "--bind", "127.0.0.1", "--dir", str(folder),
-                             "--appendonly", "yes", "--save", "", "--protected-mode", "yes"],
-                            stdout=subprocess.DEVNULL)  # fmt: skip
-    for _ in range(100):
-        if redis_up(url):
-            return proc
-        time.sleep(0.1)
-    proc.terminate()
-    sys.exit(f"redis-server did not start on {url}")
+    return Child("redis-server", [exe, "--port", str(u.port or 6379), "--bind", "127.0.0.1", "--dir", str(folder),
+                                  "--appendonly", "yes", "--save", "", "--protected-mode", "yes", "--loglevel",
+                                  "warning"], dict(os.environ), ready=lambda: redis_up(url))  # fmt: skip
 
 
 def worker_command(queue: str, concurrency: int, name: str) -> list[str]:
@@ -60,8 +55,10 @@ def worker_command(queue: str, concurrency: int, name: str) -> list[str]:
 
 
 def api_command(host: str, port: int) -> list[str]:
+    from services.core.config import get_settings
+
     return [sys.executable, "-m", "uvicorn", "services.main:app", "--host", host, "--port", str(port),
-            "--log-level", "warning"]  # fmt: skip
+            "--log-level", "warning", "--timeout-graceful-shutdown", f"{get_settings().shutdown_grace_s:g}"]
 
 
 def serve(args: argparse.Namespace) -> int:
@@ -72,10 +69,13 @@ def serve(args: argparse.Namespace) -> int:
 
     st = get_settings()
     st.data_dir.mkdir(parents=True, exist_ok=True)
-    procs: list[subprocess.Popen[bytes]] = []
-    redis_proc = start_redis(st.redis_url, st.data_dir / "redis")
-    if redis_proc is not None:
-        procs.append(redis_proc)
+    sup = Supervisor(max_restarts=args.max_restarts)
+    redis = redis_child(st.redis_url, st.data_dir / "redis")
+    if redis is not None:
+        sup.add(redis)
+        if not redis_up(st.redis_url):
+            sup.stop_all()
+            sys.exit(f"redis-server did not start on {st.redis_url}")
     get_engine()
     key = st.bootstrap_api_key or os.environ.get("NEUMATEX_API_KEY") or ""
     key_file = st.data_dir / "api-key.txt"
@@ -88,29 +88,37 @@ def serve(args: argparse.Namespace) -> int:
     with session_scope() as s:
         ensure_tenant(s, st.bootstrap_tenant or "local", key)
     env = dict(os.environ)
-    procs.append(subprocess.Popen(api_command(args.host, args.port), env=env))
-    procs.append(subprocess.Popen(worker_command("cpu,gpu" if args.gpu else "cpu", 1, "cpu@%h"), env=env))
+    sup.add(Child("api", api_command(args.host, args.port), env))
+    sup.add(Child("worker", worker_command("cpu,gpu" if args.gpu else "cpu", 1, "cpu@%h"), env))
     print(f"NeuMatEx service: dashboard http://{args.host}:{args.port}/  (API docs /docs)")
     print(f"API key (tenant '{st.bootstrap_tenant or 'local'}'): {key}   [saved in {key_file}]")
-    print("Ctrl-C stops the API, the worker" + (" and redis-server" if redis_proc else ""))
-    stop = False
+    print("Ctrl-C stops the API, the worker" + (" and redis-server" if redis else "") + "; a child that dies is "
+          "restarted", flush=True)
+    return sup.run()
 
-    def _stop(*_: object) -> None:
-        nonlocal stop
-        stop = True
 
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
-    while not stop and all(p.poll() is None for p in procs):
-        time.sleep(0.5)
-    for p in reversed(procs):
-        if p.poll() is None:
-            p.terminate()
-    for p in procs:
-        try:
-            p.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            p.kill()
+def set_limits(name: str, storage_bytes: int | None, active_jobs: int | None) -> int:
+    from sqlalchemy import select
+
+    from services.core.db import session_scope
+    from services.models import Tenant, TenantLimits
+    from services.quota import limits
+
+    with session_scope() as s:
+        tenant = s.scalar(select(Tenant).where(Tenant.name == name))
+        if tenant is None:
+            print(f"error: no tenant named {name!r}", file=sys.stderr)
+            return 2
+        row = s.get(TenantLimits, tenant.id) or TenantLimits(tenant_id=tenant.id)
+        if storage_bytes is not None:
+            row.storage_bytes = None if storage_bytes < 0 else storage_bytes
+        if active_jobs is not None:
+            row.active_jobs = None if active_jobs < 0 else active_jobs
+        s.add(row)
+        s.flush()
+        lim = limits(s, tenant.id)
+        print(f"tenant {name}: storage {lim.storage_bytes or 'no limit'} bytes, active jobs "
+              f"{lim.active_jobs or 'no limit'}")
     return 0
 
 
@@ -121,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--gpu", action="store_true", help="the worker also takes the gpu queue")
+    p.add_argument("--max-restarts", type=int, default=5,
+                   help="a child that dies more often than this within 60 s stops everything")
     p = sub.add_parser("api", help="only the API")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
@@ -129,7 +139,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--name", default="worker@%h")
     p = sub.add_parser("create-tenant", help="create a tenant and print its API key")
     p.add_argument("name")
-    sub.add_parser("reap", help="one reaper pass (re-queue jobs of vanished workers)")
+    p = sub.add_parser("set-limits", help="set a tenant's storage quota and active-job limit (overrides the "
+                       "settings; -1: back to the setting, 0: no limit)")
+    p.add_argument("name", help="the tenant's name")
+    p.add_argument("--storage-bytes", type=int, default=None)
+    p.add_argument("--active-jobs", type=int, default=None)
+    sub.add_parser("reap", help="one reaper pass (re-queue jobs of vanished workers, apply the retention)")
     args = ap.parse_args(argv)
     if args.cmd == "serve":
         return serve(args)
@@ -145,10 +160,14 @@ def main(argv: list[str] | None = None) -> int:
             tenant, key = create_tenant(s, args.name)
             print(f"tenant {tenant.id} ({args.name}); API key (shown once): {key}")
         return 0
+    if args.cmd == "set-limits":
+        return set_limits(args.name, args.storage_bytes, args.active_jobs)
     if args.cmd == "reap":
+        from services.cleanup import clean_work
         from services.reaper import reap_once
 
         print("re-queued:", reap_once())
+        print("work folders removed (retention):", clean_work())
         return 0
     return 2
 

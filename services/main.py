@@ -6,6 +6,7 @@ import logging
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -16,7 +17,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from services.core.config import get_settings
 from services.core.db import get_engine, session_scope
 from services.metrics import LATENCY, REQUESTS
-from services.routes import assets, captures, dashboard, health, jobs
+from services.routes import assets, captures, dashboard, health, jobs, tenants
 
 log = logging.getLogger("neumatex.api")
 
@@ -55,11 +56,23 @@ class Measure:
         LATENCY.labels(name).observe(time.perf_counter() - t0)
 
 
+def _message(error: Any) -> str:
+    """pydantic's message, in plainer words for an unknown field, with the value given when it is a scalar."""
+    if error.get("type") == "extra_forbidden":
+        return "unknown field (the API has no field of this name here)"
+    value = error.get("input")
+    shown = f", got {value!r}"[:80] if isinstance(value, int | float | str | bool) or value == [] else ""
+    return str(error.get("msg", "")) + shown
+
+
 def create_app(reaper: bool = True) -> FastAPI:
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         st = get_settings()
         get_engine()
+        from services.shutdown import watch_signals
+
+        watch_signals()  # progress streams end on SIGTERM, so the API stops at once
         if st.bootstrap_tenant and st.bootstrap_api_key:
             from services.crud import ensure_tenant
 
@@ -78,7 +91,7 @@ def create_app(reaper: bool = True) -> FastAPI:
     app = FastAPI(title="NeuMatEx job service", version="1", lifespan=lifespan,
                   description="Upload captures, run extraction jobs, stream progress, download neural material "
                   "assets. Authenticate with 'Authorization: Bearer <API key>'.")  # fmt: skip
-    for r in (captures.router, jobs.router, assets.router):
+    for r in (captures.router, jobs.router, assets.router, tenants.router):
         app.include_router(r, prefix="/v1")
     app.include_router(health.router)
     app.include_router(dashboard.router)
@@ -90,9 +103,11 @@ def create_app(reaper: bool = True) -> FastAPI:
 
     @app.exception_handler(RequestValidationError)
     async def bad_request(_: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = [{"file": ".".join(str(x) for x in e.get("loc", ())), "message": str(e.get("msg", ""))}
+        problems = [{"file": ".".join(str(x) for x in e.get("loc", ())), "message": _message(e)}
                     for e in exc.errors()]  # fmt: skip
-        return JSONResponse({"error": "the request does not match the API", "problems": problems}, status_code=422)
+        first = f": {problems[0]['file']}: {problems[0]['message']}" if problems else ""
+        return JSONResponse({"error": f"the request does not match the API{first}", "problems": problems},
+                            status_code=422)  # fmt: skip
 
     app.add_middleware(Measure)
 

@@ -1,4 +1,5 @@
-"""Tables: tenants, API keys (hashed), uploads (init/upload/commit sessions), captures, jobs, stage runs, events.
+"""Tables: tenants, API keys (hashed), uploads (init/upload/commit sessions), captures, jobs, stage runs, events,
+per-tenant limits, and the workers' presence (which queues live workers take, and whether they can run CUDA).
 
 The job row is the source of truth: state (queued, running, completed, failed, canceled), the current stage,
 overall progress in [0, 1], metrics and timings per stage, the error in plain words, the idempotency key, the
@@ -127,3 +128,24 @@ class Event(Base):
     kind: Mapped[str] = mapped_column(String(32))  # state, stage, progress, requeued, worker
     data: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=now)
+
+
+class TenantLimits(Base):
+    """Per-tenant overrides of the settings tenant_storage_bytes and tenant_active_jobs (None: the setting's)."""
+
+    __tablename__ = "tenant_limits"
+    tenant_id: Mapped[str] = mapped_column(ForeignKey("tenants.id"), primary_key=True)
+    storage_bytes: Mapped[int | None] = mapped_column(BigInteger, nullable=True)
+    active_jobs: Mapped[int | None] = mapped_column(Integer, nullable=True)
+
+
+class WorkerNode(Base):
+    """A Celery worker's presence: its queues and whether it can run CUDA, written every heartbeat_s by the worker
+    (workers/presence.py); live while seen within live_within_s. Job creation checks `device` and `queue` here."""
+
+    __tablename__ = "worker_nodes"
+    name: Mapped[str] = mapped_column(String(200), primary_key=True)
+    queues: Mapped[list[str]] = mapped_column(JSON, default=list)
+    cuda: Mapped[bool] = mapped_column(Boolean, default=False)
+    started_at: Mapped[datetime] = mapped_column(DateTime, default=now)
+    seen_at: Mapped[datetime] = mapped_column(DateTime, default=now, index=True)

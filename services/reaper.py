@@ -1,7 +1,8 @@
 """The reaper: re-queues running jobs whose worker stopped sending heartbeats (killed, machine gone), resuming
 from the first unfinished stage with a new attempt, and sends again the jobs whose next message never reached
 the broker. Runs as a thread in the API process (every API replica may run one: each change is a conditional
-UPDATE, so one wins). It also removes upload sessions and staging folders older than upload_ttl_s."""
+UPDATE, so one wins). Once a minute it also removes upload sessions and staging folders older than upload_ttl_s,
+and finished jobs' work folders older than work_retention_s (services/cleanup.py)."""
 
 from __future__ import annotations
 
@@ -90,5 +91,8 @@ class Reaper(threading.Thread):
                 if time.monotonic() - self.cleaned > 60:
                     self.cleaned = time.monotonic()
                     clean_staging()
+                    from services.cleanup import clean_work
+
+                    clean_work()
             except Exception as exc:  # database or broker briefly away: next pass
                 log.warning("reaper pass failed: %s", exc)

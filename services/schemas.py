@@ -7,6 +7,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.jobconfig import JobConfig, PresetName
+
 
 class CaptureOut(BaseModel):
     model_config = ConfigDict(from_attributes=True)
@@ -32,9 +34,10 @@ class UploadInit(BaseModel):
 
 
 class JobCreate(BaseModel):
-    capture_id: str
-    preset: Literal["tiny", "cpu", "gpu"] = "cpu"
-    config: dict[str, Any] = Field(default_factory=dict, description="ExtractConfig field overrides; TTO under 'tto'")
+    model_config = ConfigDict(extra="forbid")
+    capture_id: str = Field(max_length=100)
+    preset: PresetName = "cpu"
+    config: JobConfig = Field(default_factory=JobConfig, description="ExtractConfig field overrides; TTO under 'tto'")
     queue: Literal["cpu", "gpu"] | None = None
     idempotency_key: str | None = Field(None, max_length=200, description="or the Idempotency-Key header")
 
@@ -78,6 +81,8 @@ class JobOut(BaseModel):
     started_at: datetime | None
     finished_at: datetime | None
     eta_s: float | None = None
+    waiting: str | None = Field(None, description="why a queued job is not running yet (no live worker takes its "
+                                "queue), else null")  # fmt: skip
     stage_runs: list[StageRunOut] = []
 
 
@@ -94,3 +99,29 @@ class AssetManifest(BaseModel):
     files: list[str]
     bytes: int
     manifest: dict[str, Any]
+
+
+class StorageUsage(BaseModel):
+    used_bytes: int
+    limit_bytes: int | None = Field(description="null: no limit")
+    captures_bytes: int
+    uploads_bytes: int
+    jobs_bytes: int = Field(description="the jobs' work folders and assets")
+
+
+class JobsUsage(BaseModel):
+    active: int = Field(description="queued and running jobs")
+    limit: int | None = Field(description="null: no limit")
+
+
+class QuotaOut(BaseModel):
+    tenant: str
+    storage: StorageUsage
+    jobs: JobsUsage
+    work_retention_s: float | None = Field(description="finished jobs' work folders are removed after this; null: kept")
+
+
+class Deleted(BaseModel):
+    deleted: str = Field(description="what was removed, e.g. 'capture cap_...'")
+    jobs: list[str] = Field(default_factory=list, description="jobs removed with a capture")
+    bytes_freed: int

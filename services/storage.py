@@ -27,6 +27,8 @@ class LocalStorage:
 
     def path(self, key: str) -> Path:
         rel = PurePosixPath(key)
+        if "\x00" in key:
+            raise StorageError(f"storage key {key!r} holds a NUL character")
         if rel.is_absolute() or ".." in rel.parts:
             raise StorageError(f"storage key {key!r} escapes the storage folder")
         p = (self.root / rel).resolve()

@@ -3,36 +3,39 @@
 created only after the whole capture passed `neumatex_core.capture` validation, by one rename into
 captures/<capture_id>/. Any failure removes the staging folder, so nothing half-written remains.
 
-Limits: the request body (max_upload_bytes, checked against Content-Length first and again on the bytes that
-arrive) and the file count -> 413; the unpacked size, zip-slip, symlinks, zip bombs -> 422 (the checks of
-`neumatex_core.capture.extract_zip`); file types outside allowed_suffixes -> 415.
+Limits: the request body (max_upload_bytes, checked against Content-Length first and again on the bytes as they
+arrive, form files included: services/multipart.py) and the file count -> 413; the unpacked size, zip-slip,
+symlinks, zip bombs, bad file names -> 422 (the checks of `neumatex_core.capture.extract_zip`); file types outside
+allowed_suffixes -> 415; free space on the storage below min_free_bytes (or the disk full) -> 507.
 """
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+import errno
+import shutil
+import zipfile
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 
 import anyio
-from starlette.datastructures import UploadFile
 from starlette.requests import Request
 
-from neumatex_core.capture import CaptureError, extract_zip, validate_capture
-from neumatex_core.capture.archive import safe_member_path
+from neumatex_core.capture import CaptureError, extract_zip
+from neumatex_core.capture.archive import path_clashes, shown_name
 from neumatex_core.capture.loader import find_capture_root
+from neumatex_core.capture.validate import inspect_capture
 from services.core.config import Settings
 from services.errors import ApiError
+from services.multipart import too_large
 from services.storage import LocalStorage
 
 CHUNK = 1 << 20
+UNNAMED_ZIP = "the uploaded zip"
 
 
 def staging_key(upload_id: str) -> str:
     return f"staging/{upload_id}"
-
-
-def too_large(limit: int) -> ApiError:
-    return ApiError(413, f"upload larger than the limit of {limit} bytes ({limit / 1024**2:.1f} MiB)")
 
 
 def check_content_length(request: Request, limit: int) -> None:
@@ -41,8 +44,54 @@ def check_content_length(request: Request, limit: int) -> None:
         raise too_large(limit)
 
 
-async def stream_to_file(chunks: AsyncIterator[bytes], target: Path, limit: int) -> int:
-    """Write the body to `target`; 413 as soon as more than `limit` bytes arrived (the partial file is removed)."""
+def storage_full(free: int, reserve: int) -> ApiError:
+    return ApiError(507, f"the storage is full: {free / 1024**2:.0f} MiB free, {reserve / 1024**2:.0f} MiB must stay "
+                    "free; the upload was not kept (try again later or ask the operator to free space)",
+                    headers={"Connection": "close"})
+
+
+def space_guard(root: Path, reserve: int) -> Callable[[int], None]:
+    """A check to call before writing n more bytes under `root`: 507 when the free space would drop below
+    `reserve` (shutil.disk_usage of the real file system, asked again after every CHUNK bytes)."""
+    pending = [0]
+
+    def check(n: int) -> None:
+        pending[0] += n
+        if pending[0] < CHUNK and n < CHUNK:
+            return
+        free = shutil.disk_usage(root).free
+        if free - pending[0] < reserve:
+            raise storage_full(free, reserve)
+        pending[0] = 0
+
+    check(CHUNK)  # once before anything is written
+    return check
+
+
+@contextmanager
+def disk_full_is_507(root: Path, reserve: int) -> Iterator[None]:
+    """A write that failed with ENOSPC (the disk filled despite the reserve) is a 507, not a 500."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            raise
+        raise storage_full(shutil.disk_usage(root).free, reserve) from None
+
+
+def upload_label(request: Request) -> str:
+    """How messages name a zip body: its file name from Content-Disposition, else UNNAMED_ZIP."""
+    from python_multipart.multipart import parse_options_header
+
+    _, options = parse_options_header(request.headers.get("content-disposition", ""))
+    name = options.get(b"filename", b"").decode("utf-8", "replace")
+    return shown_name(PurePosixPath(name.replace("\\", "/")).name) if name else UNNAMED_ZIP
+
+
+async def stream_to_file(chunks: AsyncIterator[bytes], target: Path, limit: int,
+                         on_bytes: Callable[[int], None]) -> int:
+    """Write the body to `target`; 413 as soon as more than `limit` bytes arrived (the partial file is removed).
+    `on_bytes(n)` is called before n more bytes are written (the free-space check)."""
     target.parent.mkdir(parents=True, exist_ok=True)
     written = 0
     try:
@@ -51,6 +100,7 @@ async def stream_to_file(chunks: AsyncIterator[bytes], target: Path, limit: int)
                 written += len(chunk)
                 if written > limit:
                     raise too_large(limit)
+                on_bytes(len(chunk))
                 out.write(chunk)
     except BaseException:
         target.unlink(missing_ok=True)
@@ -71,44 +121,38 @@ def check_suffixes(files: list[str], settings: Settings) -> None:
                        [{"file": f, "message": "file type not allowed"} for f in bad[:50]])
 
 
-def unpack_zip(zip_path: Path, dest: Path, settings: Settings) -> None:
-    """Safe extraction (zip-slip, links, bombs, limits: neumatex_core.capture.extract_zip); the zip is removed."""
+def declared_size(zip_path: Path) -> int:
+    """The unpacked size a zip declares (0 when it cannot be read: extract_zip then says why)."""
     try:
-        extract_zip(zip_path, dest, settings.max_capture_bytes, settings.max_files, settings.max_zip_ratio)
+        with zipfile.ZipFile(zip_path) as z:
+            return sum(i.file_size for i in z.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return 0
+
+
+def unpack_zip(zip_path: Path, dest: Path, settings: Settings, label: str) -> None:
+    """Safe extraction (zip-slip, links, bombs, names, limits: neumatex_core.capture.extract_zip), named `label`
+    in messages; 507 first when the declared size would not leave min_free_bytes free; the zip is removed."""
+    try:
+        space_guard(dest.parent, settings.min_free_bytes)(min(declared_size(zip_path), settings.max_capture_bytes))
+        extract_zip(zip_path, dest, settings.max_capture_bytes, settings.max_files, settings.max_zip_ratio, label)
     except CaptureError as exc:
-        raise ApiError(422, f"the zip {zip_path.name} cannot be unpacked safely", problems_of(exc)) from None
+        first = exc.problems[0].message if len(exc.problems) == 1 else f"{len(exc.problems)} problems"
+        raise ApiError(422, f"{label} cannot be unpacked safely: {first}", problems_of(exc)) from None
     finally:
         zip_path.unlink(missing_ok=True)
 
 
-async def save_form_files(form_files: list[UploadFile], dest: Path, settings: Settings,
-                          budget: int) -> tuple[int, int]:
-    """Copy the form's files under `dest` at their (relative) file names; returns (files, bytes)."""
-    names: list[tuple[UploadFile, PurePosixPath]] = []
-    bad: list[dict[str, str]] = []
-    for f in form_files:
-        name = f.filename or ""
-        rel = safe_member_path(name) if name else None
-        if rel is None or str(rel) == ".":
-            bad.append({"file": name, "message": "file name is empty, absolute or escapes the capture folder"})
-        else:
-            names.append((f, rel))
-    if bad:
-        raise ApiError(422, "bad file names in the upload", bad)
-    check_suffixes([str(r) for _, r in names], settings)
-    total = 0
-    for f, rel in names:
-        target = dest / rel
-        if target.exists():
-            raise ApiError(409, f"file {str(rel)!r} was uploaded twice")
-        target.parent.mkdir(parents=True, exist_ok=True)
-        with open(target, "wb") as out:
-            while chunk := await f.read(CHUNK):
-                total += len(chunk)
-                if total > budget:
-                    raise too_large(settings.max_upload_bytes)
-                out.write(chunk)
-    return len(names), total
+def merge_clashes(part: Path, files_dir: Path) -> tuple[list[str], list[str]]:
+    """The files of a session's new part that were uploaded already, and those whose name clashes with an earlier
+    file or folder as file versus folder (`x.png` then `x.png/y.png`, or the reverse)."""
+    new = [p.relative_to(part).as_posix() for p in part.rglob("*") if p.is_file()]
+    old = {p.relative_to(files_dir).as_posix() for p in files_dir.rglob("*") if p.is_file()} \
+        if files_dir.is_dir() else set()  # fmt: skip
+    twice = sorted(set(new) & old)
+    clashing = set(path_clashes(sorted(old) + new)) - set(twice)
+    clashes = [n for n in new if n in clashing or any(p.as_posix() in clashing for p in PurePosixPath(n).parents)]
+    return twice, clashes
 
 
 def count_files(folder: Path) -> tuple[int, int]:
@@ -125,15 +169,13 @@ async def validate_folder(folder: Path, settings: Settings) -> tuple[Path, int]:
     try:
         root = find_capture_root(folder, "the upload")
     except CaptureError as exc:
-        raise ApiError(422, "the upload is not a capture", problems_of(exc)) from None
-    problems = await anyio.to_thread.run_sync(validate_capture, root)
-    if problems:
-        raise ApiError(422, f"{len(problems)} problem(s) with the capture",
-                       [{"file": p.file, "message": p.message} for p in problems])
-    import json
-
-    frames = len(json.loads((root / "transforms.json").read_text()).get("frames", []))
-    return root, frames
+        raise ApiError(422, "the upload is not a capture: transforms.json is missing", problems_of(exc)) from None
+    report = await anyio.to_thread.run_sync(inspect_capture, root)
+    if report.problems:
+        n, p = len(report.problems), report.problems[0]
+        head = "1 problem with the capture" if n == 1 else f"{n} problems with the capture, the first"
+        raise ApiError(422, f"{head}: {p.file}: {p.message}", problems_of(CaptureError(report.problems)))
+    return root, report.n_frames
 
 
 def commit_folder(storage: LocalStorage, root: Path, capture_id: str) -> str:

@@ -21,7 +21,7 @@ log = logging.getLogger("neumatex.workers")
 
 def make_celery() -> Celery:
     st = get_settings()
-    app = Celery("neumatex", broker=st.redis_url, include=["workers.tasks"])
+    app = Celery("neumatex", broker=st.redis_url, include=["workers.tasks", "workers.presence"])
     app.conf.update(
         task_acks_late=True,
         task_reject_on_worker_lost=True,

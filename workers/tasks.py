@@ -8,6 +8,7 @@ Only `neumatex_core.pipeline` is used from the core library.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -28,11 +29,13 @@ from services.core.config import STAGE_NAMES, get_settings
 from services.core.db import get_engine, session_scope
 from services.jobconfig import build_config
 from services.models import Capture, Job, StageRun, now
+from services.redact import redact_text
 from services.storage import get_storage
 from workers.celery_app import TASK, celery_app, dispatch
 
 log = logging.getLogger("neumatex.workers")
 _POOL_PARENT: int | None = None  # the worker's main process, when this is a prefork child
+TEXT_SUFFIXES = (".json", ".html", ".htm", ".txt", ".md")
 
 
 @worker_process_init.connect
@@ -121,8 +124,22 @@ class JobContext:
         return self._stop
 
 
+def _without_server_paths(folder: Path) -> None:
+    """Rewrite the asset's text files (manifest, report) without server paths (services/redact.py): they are
+    downloaded through the API. Files whose checksum the manifest records are left as they are."""
+    manifest = folder / "manifest.json"
+    hashed = set(json.loads(manifest.read_text()).get("files", {})) if manifest.is_file() else set()
+    for p in folder.rglob("*"):
+        if p.is_file() and p.suffix.lower() in TEXT_SUFFIXES and p.relative_to(folder).as_posix() not in hashed:
+            text = p.read_text(errors="surrogateescape")
+            shown = redact_text(text)
+            if shown != text:
+                p.write_text(shown, errors="surrogateescape")
+
+
 def _publish_asset(job_id: str, work: Path) -> str:
-    """Copy the export stage's asset to assets/<job>/asset and zip it (each appears by one rename)."""
+    """Copy the export stage's asset to assets/<job>/asset (without server paths) and zip it (each appears by one
+    rename)."""
     storage = get_storage()
     key = f"assets/{job_id}"
     base = storage.path(key)
@@ -132,6 +149,7 @@ def _publish_asset(job_id: str, work: Path) -> str:
     tmp.mkdir()
     try:
         shutil.copytree(pipeline.asset_path(work), tmp / "asset")
+        _without_server_paths(tmp / "asset")
         shutil.make_archive(str(tmp / "asset"), "zip", root_dir=tmp / "asset")
         shutil.rmtree(base / "asset", ignore_errors=True)
         os.replace(tmp / "asset", base / "asset")

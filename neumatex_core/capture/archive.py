@@ -1,17 +1,22 @@
-"""Safe extraction of an uploaded capture zip.
+"""Safe extraction of an uploaded capture zip, and the rules for the file names of any upload.
 
-Before writing anything, every member is checked and every problem is reported at once: absolute paths or
-`..` escaping the folder (zip-slip), symlinks, encrypted members, too many files, a declared total size over
-the limit, and members compressed more than `max_ratio` to 1 (zip bombs). While extracting, the limits are
-enforced again on the bytes actually produced, because declared sizes can lie. Nothing is written outside
-`dest`, existing files are never overwritten, and on any failure everything this call wrote is removed.
+Before writing anything, every member is checked and every problem is reported at once: file names that are
+unusable (`name_problem`: absolute, `..` escaping the folder (zip-slip), NUL or control characters, a part
+longer than 255 bytes), a name that is both a file and a folder, symlinks, encrypted members, too many files,
+a declared total size over the limit, members compressed more than `max_ratio` to 1 and a whole archive
+compressed more than that (zip bombs made of many small members). While extracting, every byte written is
+counted against the member's declared size and the total limit, because declared sizes can lie. Nothing is
+written outside `dest`, existing files are never overwritten, and on any failure (a full disk included)
+everything this call wrote is removed.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
 from typing import IO
 
@@ -21,6 +26,8 @@ DEFAULT_MAX_TOTAL_BYTES = 2 * 1024**3  # 2 GiB uncompressed
 DEFAULT_MAX_FILES = 10_000
 DEFAULT_MAX_RATIO = 200.0
 RATIO_CHECK_MIN_BYTES = 1024**2  # small members may compress well (a blank mask); bombs are large
+MAX_NAME_PART_BYTES = 255  # NAME_MAX of common file systems
+MAX_NAME_BYTES = 1024
 _CHUNK = 1024**2
 
 
@@ -46,6 +53,36 @@ def safe_member_path(name: str) -> PurePosixPath | None:
     return PurePosixPath(*parts) if parts else PurePosixPath(".")
 
 
+def name_problem(name: str) -> str | None:
+    """Why `name` cannot be a file's path inside a capture (None when it can), in plain words."""
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        return "has a NUL or control character in its name"
+    if len(name.encode("utf-8", "surrogateescape")) > MAX_NAME_BYTES:
+        return f"has a name longer than {MAX_NAME_BYTES} bytes"
+    rel = safe_member_path(name)
+    if rel is None:
+        return "has an absolute path or '..' that escapes the folder (zip-slip)"
+    if str(rel) == ".":
+        return "has an empty name"
+    if any(len(part.encode("utf-8", "surrogateescape")) > MAX_NAME_PART_BYTES for part in rel.parts):
+        return f"has a folder or file name longer than {MAX_NAME_PART_BYTES} bytes"
+    return None
+
+
+def path_clashes(files: list[str], folders: Sequence[str] = ()) -> list[str]:
+    """The file names (each without a `name_problem`) that another name uses as a folder, e.g. `x.png` and
+    `x.png/y.png`, or that appear twice."""
+    paths = [safe_member_path(f) or PurePosixPath(".") for f in files]
+    parents = {p for f in paths for p in f.parents} | {safe_member_path(d) or PurePosixPath(".") for d in folders}
+    seen: set[PurePosixPath] = set()
+    out = []
+    for name, p in zip(files, paths, strict=True):
+        if p in parents or p in seen:
+            out.append(name)
+        seen.add(p)
+    return out
+
+
 def _is_symlink(info: zipfile.ZipInfo) -> bool:
     return stat.S_ISLNK(info.external_attr >> 16)
 
@@ -67,30 +104,49 @@ def check_members(
         problems.append(
             Problem(label, f"unpacks to {total} bytes; at most {max_total_bytes} bytes are allowed")
         )
-    for info in infos:
-        name = info.filename
-        if safe_member_path(name) is None:
-            problems.append(
-                Problem(
-                    label, f"member {name!r} has an absolute path or '..' that escapes the folder (zip-slip)"
-                )
+    packed = sum(i.compress_size for i in files)
+    if total >= RATIO_CHECK_MIN_BYTES and total / max(packed, 1) > max_ratio:
+        problems.append(
+            Problem(
+                label,
+                f"expands {total / max(packed, 1):.0f}x ({packed} -> {total} bytes),"
+                f" more than the allowed {max_ratio:.0f}x (zip bomb?)",
             )
+        )
+    bad_names: dict[str, str] = {}
+    for info in infos:
+        reason = name_problem(info.filename)
+        if reason is not None and not (info.is_dir() and safe_member_path(info.filename) == PurePosixPath(".")):
+            bad_names[info.filename] = reason
+            problems.append(Problem(label, f"member {shown_name(info.filename)} {reason}"))
+    good = [i.filename for i in files if i.filename not in bad_names]
+    dirs = [i.filename for i in infos if i.is_dir() and i.filename not in bad_names]
+    for name in path_clashes(good, dirs):
+        problems.append(Problem(label, f"member {shown_name(name)} is both a file and a folder, or appears twice"))
+    for info in infos:
+        name = shown_name(info.filename)
         if _is_symlink(info):
-            problems.append(Problem(label, f"member {name!r} is a symbolic link; links are not allowed"))
+            problems.append(Problem(label, f"member {name} is a symbolic link; links are not allowed"))
         if info.flag_bits & 0x1:
-            problems.append(Problem(label, f"member {name!r} is encrypted"))
+            problems.append(Problem(label, f"member {name} is encrypted"))
         if info.file_size >= RATIO_CHECK_MIN_BYTES:
             ratio = info.file_size / max(info.compress_size, 1)
             if ratio > max_ratio:
                 problems.append(
                     Problem(
                         label,
-                        f"member {name!r} expands {ratio:.0f}x"
+                        f"member {name} expands {ratio:.0f}x"
                         f" ({info.compress_size} -> {info.file_size} bytes),"
                         f" more than the allowed {max_ratio:.0f}x (zip bomb?)",
                     )
                 )
     return problems
+
+
+def shown_name(name: str, limit: int = 80) -> str:
+    """A file name for a message: quoted, control characters escaped, a long name shortened."""
+    text = repr(name)
+    return text if len(text) <= limit else f"{text[: limit // 2]}...{text[-limit // 2 :]} ({len(name)} characters)"
 
 
 def copy_limited(src: IO[bytes], dst: IO[bytes], max_bytes: int) -> int:
@@ -112,20 +168,23 @@ def extract_zip(
     max_total_bytes: int = DEFAULT_MAX_TOTAL_BYTES,
     max_files: int = DEFAULT_MAX_FILES,
     max_ratio: float = DEFAULT_MAX_RATIO,
+    label: str | None = None,
 ) -> Path:
     """Extract `zip_path` into the folder `dest` (created if needed) and return dest.
 
-    Raises CaptureError with one Problem per reason (each naming the zip and the member) when the archive is
-    unsafe, unreadable or over a limit; in that case nothing that this call wrote is left behind.
+    Raises CaptureError with one Problem per reason (each naming the zip, as `label` or by its file name, and
+    the member) when the archive is unsafe, unreadable or over a limit; in that case nothing that this call
+    wrote is left behind. A full disk is an OSError (ENOSPC), raised after the same clean-up.
     """
     zip_path, dest = Path(zip_path), Path(dest)
-    label = zip_path.name
+    label = label or zip_path.name
     try:
         archive = zipfile.ZipFile(zip_path)
     except FileNotFoundError:
         raise CaptureError([Problem(label, "archive not found")]) from None
     except (zipfile.BadZipFile, OSError) as exc:
-        raise CaptureError([Problem(label, f"not a readable zip archive ({exc})")]) from None
+        reason = str(exc).replace(str(zip_path), label)
+        raise CaptureError([Problem(label, f"is not a readable zip archive ({reason})")]) from None
     with archive:
         infos = archive.infolist()
         problems = check_members(infos, label, max_total_bytes, max_files, max_ratio)
@@ -169,12 +228,17 @@ def _extract_members(
         if target.resolve() != target or not target.is_relative_to(root):
             # a folder that already exists in dest links elsewhere
             raise CaptureError(
-                [Problem(label, f"member {info.filename!r} would be written outside the folder")]
+                [Problem(label, f"member {shown_name(info.filename)} would be written outside the folder")]
             )
         if info.is_dir():
             _mkdirs(target, created)
             continue
-        _mkdirs(target.parent, created)
+        try:
+            _mkdirs(target.parent, created)
+        except (FileExistsError, NotADirectoryError):
+            raise CaptureError(
+                [Problem(label, f"member {shown_name(info.filename)} is inside a folder that is a file")]
+            ) from None
         # The member's budget: its declared size (which passed the ratio check) and what is left of the total
         # (declared sizes can lie; zipfile itself also stops at the declared size and checks the CRC).
         allowed = min(max_total_bytes - total, info.file_size)
@@ -182,7 +246,7 @@ def _extract_members(
             fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
         except FileExistsError:
             raise CaptureError(
-                [Problem(label, f"member {info.filename!r} would overwrite an existing file")]
+                [Problem(label, f"member {shown_name(info.filename)} would overwrite an existing file")]
             ) from None
         created.append(target)
         try:
@@ -190,13 +254,19 @@ def _extract_members(
                 total += copy_limited(src, out, allowed)
         except _LimitExceeded:
             raise CaptureError(
-                [Problem(label, f"member {info.filename!r} unpacks to more bytes than allowed or declared")]
+                [Problem(label, f"member {shown_name(info.filename)} unpacks to more bytes than allowed or declared")]
+            ) from None
+        except OSError as exc:
+            if exc.errno == errno.ENOSPC:
+                raise  # the server's problem (storage full), not the upload's
+            raise CaptureError(
+                [Problem(label, f"member {shown_name(info.filename)} cannot be extracted ({exc.strerror})")]
             ) from None
         # zipfile raises NotImplementedError for a compression method it lacks (e.g. deflate64), RuntimeError for
         # an encrypted member: both are the upload's problem, reported like a corrupt member
-        except (zipfile.BadZipFile, NotImplementedError, RuntimeError, OSError, EOFError) as exc:
+        except (zipfile.BadZipFile, NotImplementedError, RuntimeError, EOFError) as exc:
             raise CaptureError(
-                [Problem(label, f"member {info.filename!r} cannot be extracted ({exc})")]
+                [Problem(label, f"member {shown_name(info.filename)} cannot be extracted ({exc})")]
             ) from None
 
 

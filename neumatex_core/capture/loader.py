@@ -33,6 +33,8 @@ TRANSFORMS = "transforms.json"
 RIGID_TOLERANCE = 1e-3  # max |R^T R - I| and |det R - 1| for a rotation
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")  # tried for extension-less file_path
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+MAX_FOLDER_CHAIN = 8  # single folders looked into for transforms.json
+TOO_DEEP = "has lists or objects nested too deeply to read"
 
 
 # ---------------------------------------------------------------------------------------------- schema
@@ -334,7 +336,14 @@ def parse_capture(root: str | Path) -> ParsedCapture:
             Problem(TRANSFORMS, f"is not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})")
         )
         return out
-    top, dropped = _validate_top(data, problems)
+    except RecursionError:
+        problems.append(Problem(TRANSFORMS, f"{TOO_DEEP}; a capture's JSON is a few levels deep"))
+        return out
+    try:
+        top, dropped = _validate_top(data, problems)
+    except RecursionError:
+        problems.append(Problem(TRANSFORMS, f"{TOO_DEEP}; a capture's JSON is a few levels deep"))
+        return out
     if top is None:
         return out
     out.schema_ok = True
@@ -391,17 +400,27 @@ def is_zip(path: Path) -> bool:
     return path.is_file() and (path.suffix.lower() == ".zip" or zipfile.is_zipfile(path))
 
 
-def find_capture_root(folder: Path, label: str) -> Path:
-    """The folder holding transforms.json: `folder` itself or its single top-level sub-folder."""
-    if (folder / TRANSFORMS).is_file():
-        return folder
+def _only_subfolder(folder: Path) -> Path | None:
+    """The sub-folder of `folder` when it has exactly one (hidden ones and __MACOSX aside)."""
     subdirs = [d for d in folder.iterdir() if d.is_dir() and not d.name.startswith((".", "__MACOSX"))]
-    if len(subdirs) == 1 and (subdirs[0] / TRANSFORMS).is_file():
-        return subdirs[0]
+    return subdirs[0] if len(subdirs) == 1 else None
+
+
+def find_capture_root(folder: Path, label: str) -> Path:
+    """The folder holding transforms.json: `folder` itself, or the end of a chain of single folders inside it
+    (a zip of `capture/` or of `examples/capture/`)."""
+    current: Path | None = folder
+    for _ in range(MAX_FOLDER_CHAIN):
+        if current is None:
+            break
+        if (current / TRANSFORMS).is_file():
+            return current
+        current = _only_subfolder(current)
     raise CaptureError(
         [
             Problem(
-                TRANSFORMS, f"not found in {label} (looked at its top level and in a single top-level folder)"
+                TRANSFORMS,
+                f"not found in {label} (looked at its top level and inside a single top-level folder)",
             )
         ]
     )

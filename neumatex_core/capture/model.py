@@ -16,6 +16,7 @@ from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.mesh import Mesh, load_mesh
 from neumatex_core.imageio import ImageError, read_image
+from neumatex_core.lighting.envmap import load_envmap_radiance
 
 
 @dataclass(frozen=True)
@@ -105,11 +106,12 @@ class Capture:
     def load_envmap(self) -> np.ndarray:
         """The environment map as float32 [H, W, 3] linear radiance, multiplied by `envmap_scale`.
 
-        Negative values (float noise from the map's authoring; `validate_capture` rejects large ones) are
-        clamped to 0. Rows run from +Y (top) to -Y, in envmap space (apply `envmap_to_world` for world).
+        Raises EnvmapError naming the file when the map is not usable (not HDR, not 2:1, NaN, negatives beyond
+        float noise: `neumatex_core.lighting.envmap.read_envmap`, the checks of `validate_capture`); float-noise
+        negatives are clamped to 0. Rows run from +Y (top) to -Y, in envmap space (apply `envmap_to_world`).
         """
-        rgb = to_rgb(read_image(self.envmap_path), self.envmap_path)
-        return (np.maximum(rgb, 0.0) * np.float32(self.envmap_scale)).astype(np.float32)
+        rgb = load_envmap_radiance(self.envmap_path)
+        return (rgb * np.float32(self.envmap_scale)).astype(np.float32)
 
     def load_mesh(self, smooth: bool = True) -> Mesh:
         """The object's mesh (raises MeshError naming the file)."""

@@ -8,6 +8,7 @@ values) and checks that every camera sees some of the mesh.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -27,9 +28,10 @@ from neumatex_core.capture.model import CaptureError, Problem
 from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.mesh import Mesh, MeshError, load_mesh
 from neumatex_core.imageio import ImageError, read_image
-from neumatex_core.lighting.envmap import check_envmap_pixels
+from neumatex_core.lighting.envmap import read_envmap
 
 MAX_VISIBILITY_VERTICES = 5000
+MIN_MESH_SPAN_PX = 4  # the mesh must span at least this many pixels in some photo
 T = TypeVar("T")
 
 
@@ -49,7 +51,11 @@ class ValidationReport:
 
 def _reason(exc: Exception, path: Path) -> str:
     """The exception text on one line, without the absolute path (the Problem names the file already)."""
-    text = str(exc).replace(f"{path}: ", "").replace(str(path), "the file")
+    return _reason_text(str(exc), path)
+
+
+def _reason_text(text: str, path: Path) -> str:
+    text = text.replace(f"{path}: ", "").replace(str(path), "the file")
     return "; ".join(line.strip() for line in text.splitlines() if line.strip())
 
 
@@ -58,15 +64,27 @@ def _guard(problems: list[Problem], file: str, check: Callable[[], T]) -> T | No
     try:
         return check()
     except Exception as exc:  # reported, never raised: the other checks must still run
-        problems.append(Problem(file, f"could not be checked ({type(exc).__name__}: {exc})"))
+        text = re.sub(r"(?<![\w.])/\S*/", "", str(exc))  # no server paths in the message
+        problems.append(Problem(file, f"could not be checked ({type(exc).__name__}: {text})"))
         return None
+
+
+def _visible_pixels(camera: Camera, vertices: np.ndarray) -> np.ndarray:
+    """Image positions [M, 2] of the world points [N, 3] that lie in front of the camera and inside its image."""
+    px, front = camera.project(np.asarray(vertices, dtype=np.float64))
+    inside = (px[:, 0] >= 0) & (px[:, 0] <= camera.width) & (px[:, 1] >= 0) & (px[:, 1] <= camera.height)
+    return np.asarray(px[front & inside])
 
 
 def sees_mesh(camera: Camera, vertices: np.ndarray) -> bool:
     """Whether any of the world points [N, 3] lies in front of the camera and inside its image."""
-    px, front = camera.project(np.asarray(vertices, dtype=np.float64))
-    inside = (px[:, 0] >= 0) & (px[:, 0] <= camera.width) & (px[:, 1] >= 0) & (px[:, 1] <= camera.height)
-    return bool((front & inside).any())
+    return len(_visible_pixels(camera, vertices)) > 0
+
+
+def mesh_span(camera: Camera, vertices: np.ndarray) -> float:
+    """How many pixels across the visible part of the points [N, 3] spans in the camera's image (0 if none)."""
+    px = _visible_pixels(camera, vertices)
+    return float((px.max(axis=0) - px.min(axis=0)).max()) if len(px) else 0.0
 
 
 def _subsample(vertices: np.ndarray, n: int = MAX_VISIBILITY_VERTICES) -> np.ndarray:
@@ -132,17 +150,23 @@ def _check_envmap(parsed: ParsedCapture, report: ValidationReport) -> None:
     if parsed.envmap_path is None:
         return
     path, name = parsed.envmap_path, parsed.rel(parsed.envmap_path)
-    try:
-        pixels = read_image(path)
-    except ImageError as exc:
-        report.problems.append(Problem(name, _reason(exc, path)))
-        return
-    report.envmap_size = (pixels.shape[1], pixels.shape[0])
-    report.problems.extend(Problem(name, msg) for msg in check_envmap_pixels(pixels))
+    pixels, problems = read_envmap(path)
+    if pixels is not None:
+        report.envmap_size = (pixels.shape[1], pixels.shape[0])
+    report.problems.extend(Problem(name, _reason_text(msg, path)) for msg in problems)
 
 
 def _check_visibility(parsed: ParsedCapture, mesh: Mesh, problems: list[Problem]) -> None:
     points = _subsample(mesh.vertices)
+    spans = [mesh_span(f.camera, points) for f in parsed.frames if f.camera is not None]
+    if spans and 0 < max(spans) < MIN_MESH_SPAN_PX and parsed.mesh_path is not None:
+        problems.append(
+            Problem(
+                parsed.rel(parsed.mesh_path),
+                f"the mesh spans at most {max(spans):.2g} pixels in the photos (at least {MIN_MESH_SPAN_PX} are"
+                " needed): its surface is too small for the views; check its units and the camera positions",
+            )
+        )
     for f in parsed.frames:
         if f.camera is not None and not sees_mesh(f.camera, points):
             problems.append(

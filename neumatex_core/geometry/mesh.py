@@ -6,11 +6,15 @@ tensors to the renderer on demand.
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+DEGENERATE_AREA = 1e-12  # a face's area below this times the squared bounding-box diagonal is zero
+TEXT_FORMATS = (".obj",)  # decoded here (UTF-8, else Latin-1) so that a stray byte in a comment is harmless
 
 
 class MeshError(ValueError):
@@ -121,7 +125,31 @@ def check_mesh_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> lis
         problems.append(f"{name}: mesh has no triangle faces")
     elif len(vertices) and (faces.min() < 0 or faces.max() >= len(vertices)):
         problems.append(f"{name}: faces index vertices that do not exist")
+    elif not problems:
+        problems += _surface_problems(vertices, faces, name)
     return problems
+
+
+def _surface_problems(vertices: np.ndarray, faces: np.ndarray, name: str) -> list[str]:
+    """A surface with no usable triangle: every face degenerate (zero area, relative to the mesh's size), or a
+    mesh whose vertices all lie at one point."""
+    v = vertices.astype(np.float64)
+    extent = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+    if extent <= 0.0:
+        return [f"{name}: all vertices lie at one point: the mesh has no surface"]
+    tri = v[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area > DEGENERATE_AREA * extent**2).any():
+        return [f"{name}: all {len(faces)} faces are degenerate (zero area): no usable triangles"]
+    return []
+
+
+def _decode(data: bytes) -> str:
+    """Text of a mesh file: UTF-8 (with or without BOM), else Latin-1 (which decodes any byte)."""
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
 
 
 def load_mesh(path: str | Path, smooth: bool = True) -> Mesh:
@@ -136,7 +164,12 @@ def load_mesh(path: str | Path, smooth: bool = True) -> Mesh:
     if not path.is_file():
         raise MeshError(f"{path}: mesh file not found")
     try:
-        loaded = trimesh.load(path, process=False, force="mesh")
+        if path.suffix.lower() in TEXT_FORMATS:
+            resolver = trimesh.resolvers.FilePathResolver(str(path))
+            loaded = trimesh.load(io.StringIO(_decode(path.read_bytes())), file_type=path.suffix.lower()[1:],
+                                  process=False, force="mesh", resolver=resolver)  # fmt: skip
+        else:
+            loaded = trimesh.load(path, process=False, force="mesh")
     except Exception as exc:  # trimesh raises many types for bad files
         raise MeshError(f"{path}: cannot be read as a mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(loaded, trimesh.Trimesh):

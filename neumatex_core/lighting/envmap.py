@@ -18,10 +18,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neumatex_core.imageio import read_image
+from neumatex_core.imageio import ImageError, is_float_image, read_image
 
 LUMINANCE = (0.2126, 0.7152, 0.0722)
-NEGATIVE_NOISE_FRACTION = 1e-2  # of the mean radiance; see check_envmap_pixels
+# Negative values smaller than this fraction of the map's mean |radiance| are float noise of the map's authoring
+# (the shared CC0 maps have them, down to -0.0022 against a mean of 0.8, i.e. 0.27%): they pass and are clamped
+# to zero on load. Larger ones are errors. The one threshold of check_envmap_pixels and every loader.
+NEGATIVE_NOISE_FRACTION = 1e-2
+LDR_ENVMAP = ("is an 8- or 16-bit (display-encoded, low dynamic range) image; the environment map must be linear "
+              "HDR with floating-point pixels: save it as EXR or Radiance HDR")  # fmt: skip
 
 
 class EnvmapError(ValueError):
@@ -29,11 +34,8 @@ class EnvmapError(ValueError):
 
 
 def check_envmap_pixels(pixels: np.ndarray) -> list[str]:
-    """Reasons a float [H, W, C] map cannot light a scene: not 2:1, NaN, infinite, negative, all black.
-
-    Negative values smaller than 1% of the map's mean radiance are compression noise (the shared CC0 maps
-    have them, down to -0.0022 against a mean of 0.8) and are clamped to zero on load; larger ones are errors.
-    """
+    """Reasons a float [H, W, C] map cannot light a scene: not 2:1, NaN, infinite, negative beyond the noise
+    tolerance (NEGATIVE_NOISE_FRACTION), all black."""
     h, w, c = pixels.shape
     out = []
     if c not in (1, 3, 4):
@@ -56,6 +58,28 @@ def check_envmap_pixels(pixels: np.ndarray) -> list[str]:
     if finite.any() and float(values.max()) <= 0.0:
         out.append("environment map is black everywhere: it would light nothing")
     return out
+
+
+def read_envmap(path: str | Path) -> tuple[np.ndarray | None, list[str]]:
+    """The map's pixels [H, W, C] and every reason it cannot light a scene: unreadable, not HDR (an 8- or 16-bit
+    file is display-encoded, not linear radiance), then `check_envmap_pixels`. Pixels are None when unreadable.
+    Reasons do not repeat the file's name."""
+    try:
+        if not is_float_image(path):
+            return None, [LDR_ENVMAP]
+        pixels = read_image(path)
+    except ImageError as exc:
+        return None, [str(exc).replace(f"{path}: ", "")]
+    return pixels, check_envmap_pixels(pixels)
+
+
+def load_envmap_radiance(path: str | Path) -> np.ndarray:
+    """[H, W, 3] float32 linear radiance of a usable map, float-noise negatives clamped to 0; raises EnvmapError
+    naming the file with every reason otherwise."""
+    pixels, problems = read_envmap(path)
+    if problems or pixels is None:
+        raise EnvmapError(f"{path}: " + "; ".join(problems))
+    return np.maximum(envmap_rgb(pixels), 0.0)
 
 
 def envmap_rgb(pixels: np.ndarray) -> np.ndarray:
@@ -82,7 +106,7 @@ class EnvironmentMap:
         data = torch.as_tensor(np.asarray(radiance, dtype=np.float32)[:, :, :3], device=device)
         self.device = torch.device(device)
         self.height, self.width = int(data.shape[0]), int(data.shape[1])
-        # Float noise below zero (see check_envmap_pixels) is clamped; the map is otherwise used as given.
+        # Float noise below zero (NEGATIVE_NOISE_FRACTION) is clamped; the map is otherwise used as given.
         self.texels = data.clamp_min(0.0) * float(scale)
         rot = np.eye(3) if to_world is None else np.asarray(to_world, dtype=np.float64)
         self.to_world = torch.as_tensor(rot, dtype=torch.float32, device=device)
@@ -94,14 +118,7 @@ class EnvironmentMap:
         device: torch.device | str = "cpu",
     ) -> EnvironmentMap:
         """Load an EXR/HDR equirectangular map; raises EnvmapError naming the file if it is unusable."""
-        try:
-            pixels = read_image(path)
-        except ValueError as exc:
-            raise EnvmapError(str(exc)) from None
-        problems = check_envmap_pixels(pixels)
-        if problems:
-            raise EnvmapError(f"{path}: " + "; ".join(problems))
-        return cls(envmap_rgb(pixels), to_world, scale, device)
+        return cls(load_envmap_radiance(path), to_world, scale, device)
 
     @classmethod
     def constant(cls, radiance: tuple[float, float, float] = (1.0, 1.0, 1.0), device: torch.device | str = "cpu",

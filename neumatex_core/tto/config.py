@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
 
-from neumatex_core.config import check_known_keys
+from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
 
 FieldKind = Literal["triplane", "uv"]
 InitKind = Literal["lmrm", "random", "pbr"]
@@ -28,6 +28,15 @@ RegKind = Literal["uncertainty", "none", "oracle"]
 MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
 PRESETS = ("tiny", "cpu", "gpu")
+BIG = 1 << 24
+# The allowed values of the numeric fields (checked by TTOConfig.check; the job service's bounds).
+RANGES: dict[str, Range] = {
+    "steps": Range(1, 100_000), "pixels": Range(1, 1 << 20), "spp": Range(1, 4096), "max_bounces": Range(1, 64),
+    "lr": Range(0, 100, lo_open=True), "lr_final": Range(0, 1, lo_open=True), "lambda_reg": Range(0, 1e6),
+    "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
+    "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
+    "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
+    "pbr_steps": Range(1, 100_000), "decoder_lr": Range(0, 100, lo_open=True)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -96,22 +105,8 @@ class TTOConfig:
 
     def check(self) -> None:
         """ValueError naming the first bad field."""
-        for name in ("steps", "pixels", "spp", "max_bounces", "reg_points", "reg_pool", "uv_resolution",
-                     "cache_pixels", "cache_directions", "cache_every", "pbr_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"TTO {name} must be >= 1, got {getattr(self, name)}")
-        if not self.lr > 0 or not 0 < self.lr_final <= 1:
-            raise ValueError(f"TTO lr must be > 0 and lr_final in (0, 1], got {self.lr} and {self.lr_final}")
-        if not self.decoder_lr > 0:
-            raise ValueError(f"TTO decoder_lr must be > 0, got {self.decoder_lr}")
-        if self.lambda_reg < 0:
-            raise ValueError(f"TTO lambda_reg must be >= 0, got {self.lambda_reg}")
-        choices = {"field": ("triplane", "uv"), "init": ("lmrm", "random", "pbr"),
-                   "reg": ("uncertainty", "none", "oracle"), "material": ("neural", "pbr"),
-                   "estimator": ("cached", "path")}  # fmt: skip
-        for name, allowed in choices.items():
-            if getattr(self, name) not in allowed:
-                raise ValueError(f"TTO {name} must be one of {allowed}, got {getattr(self, name)!r}")
+        check_ranges(self, RANGES, "TTO")
+        check_choices(self, "TTO")
         if self.init == "pbr" and (self.material != "neural" or self.field != "triplane"):
             raise ValueError("TTO init='pbr' starts a neural triplane from a PBR fit: it needs material='neural' and "
                              f"field='triplane', got {self.material!r} and {self.field!r}")

@@ -33,6 +33,7 @@ class Settings(BaseSettings):
     allowed_suffixes: tuple[str, ...] = (".json", ".png", ".jpg", ".jpeg", ".exr", ".hdr", ".tif", ".tiff",
                                          ".obj", ".ply", ".glb", ".gltf", ".mtl", ".txt", ".md")  # fmt: skip
     upload_ttl_s: float = 24 * 3600  # unfinished init/upload sessions are removed after this
+    min_free_bytes: int = 1024**3  # uploads stop with 507 (storage full) before the storage's free space drops below
 
     # workers
     heartbeat_s: float = 2.0
@@ -46,7 +47,16 @@ class Settings(BaseSettings):
         "validate": 600.0, "prepare_views": 3600.0, "lmrm": 1800.0, "tto": 6 * 3600.0, "export": 3600.0})
     visibility_timeout_s: float = 8 * 3600.0  # must exceed the longest stage time limit
 
+    # tenants (per-tenant overrides: `python -m services set-limits`); 0: no limit
+    tenant_storage_bytes: int = 50 * 1024**3  # captures, staged uploads, jobs' work folders and assets -> 507
+    tenant_active_jobs: int = 8  # queued + running jobs at once -> 429
+    work_retention_s: float = 7 * 24 * 3600.0  # finished jobs' work folders are removed after this (0: kept)
+    worker_seen_s: float = 0.0  # a worker counts as live if seen this recently (0: stale_after_s)
+
     # API
+    metrics_token: str = ""  # /metrics needs 'Authorization: Bearer <metrics_token>' ...
+    metrics_public: bool = False  # ... unless this is true (a private network); neither: /metrics is 403
+    shutdown_grace_s: float = 5.0  # on SIGTERM, progress streams end and the API stops within this (uvicorn)
     bootstrap_tenant: str = ""  # with bootstrap_api_key: created at start-up if missing (python -m services serve)
     bootstrap_api_key: str = ""
     public_url: str = "http://127.0.0.1:8000"
@@ -73,6 +83,10 @@ class Settings(BaseSettings):
     @property
     def local_root(self) -> Path:
         return (self.storage_root or self.data_dir / "storage").resolve()
+
+    @property
+    def live_within_s(self) -> float:
+        return self.worker_seen_s or self.stale_after_s
 
     def time_limit(self, stage: str) -> float:
         return float(self.stage_time_limits.get(stage, 3600.0))

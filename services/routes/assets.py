@@ -1,4 +1,5 @@
-"""A completed job's asset: the manifest with the file list, single files, and the zip."""
+"""A completed job's asset: the manifest with the file list, single files, and the zip; DELETE removes a finished
+job's asset and work folder (its record stays)."""
 
 from __future__ import annotations
 
@@ -7,10 +8,11 @@ import json
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
 
-from services import crud
+from services import cleanup, crud
 from services.errors import ApiError, not_found
+from services.redact import redact_data
 from services.routes.deps import SessionDep, TenantDep
-from services.schemas import AssetManifest
+from services.schemas import AssetManifest, Deleted
 from services.storage import StorageError, get_storage
 
 router = APIRouter(tags=["assets"])
@@ -20,6 +22,8 @@ def _asset_key(s: SessionDep, tenant_id: str, job_id: str) -> str:
     job = crud.job_of_tenant(s, tenant_id, job_id)
     if job is None:
         raise not_found("job", job_id)
+    if job.state == "completed" and not job.asset_key:
+        raise ApiError(410, f"the asset of job {job_id} was deleted")
     if job.state != "completed" or not job.asset_key:
         raise ApiError(409, f"job {job_id} is {job.state}; its asset exists once it has completed")
     return job.asset_key
@@ -30,7 +34,7 @@ def asset_manifest(job_id: str, s: SessionDep, tenant: TenantDep) -> AssetManife
     storage = get_storage()
     key = _asset_key(s, tenant.id, job_id) + "/asset"
     files = storage.list(key)
-    manifest = json.loads(storage.path(key + "/manifest.json").read_text())
+    manifest = redact_data(json.loads(storage.path(key + "/manifest.json").read_text()))
     return AssetManifest(job_id=job_id, files=files, bytes=sum(storage.size(f"{key}/{f}") for f in files),
                          manifest=manifest)  # fmt: skip
 
@@ -52,3 +56,14 @@ def asset_file(job_id: str, file_path: str, s: SessionDep, tenant: TenantDep) ->
     if not path.is_file() or not path.is_relative_to(storage.path(key)):
         raise not_found("asset file", file_path)
     return FileResponse(path)
+
+
+@router.delete("/jobs/{job_id}/asset", response_model=Deleted,
+               summary="Delete a finished job's asset and work folder (409 while it is queued or running)")
+def delete_asset(job_id: str, s: SessionDep, tenant: TenantDep) -> Deleted:
+    job = crud.job_of_tenant(s, tenant.id, job_id)
+    if job is None:
+        raise not_found("job", job_id)
+    freed = cleanup.delete_asset(s, job)
+    s.commit()
+    return Deleted(deleted=f"asset and work folder of job {job_id}", bytes_freed=freed)

@@ -12,61 +12,51 @@ from typing import Annotated
 import anyio
 from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy import select
-from starlette.datastructures import UploadFile
 
-from services import uploads
+from neumatex_core.capture.archive import shown_name
+from services import cleanup, quota, uploads
 from services.core.config import get_settings
 from services.core.db import session_scope
 from services.errors import ApiError, not_found
 from services.models import Capture, Upload, new_id
-from services.routes.deps import SessionDep, TenantDep
-from services.schemas import CaptureOut, UploadInit, UploadOut
+from services.multipart import save_multipart
+from services.routes.deps import Offset, SessionDep, TenantDep
+from services.schemas import CaptureOut, Deleted, UploadInit, UploadOut
 from services.storage import get_storage
 
 router = APIRouter(tags=["captures"])
 
 
-async def _form_files(request: Request, limit_files: int) -> list[UploadFile]:
-    try:
-        form = await request.form(max_files=limit_files + 1, max_fields=100)
-    except Exception as exc:  # malformed multipart, or too many parts
-        if "Too many files" in str(exc):
-            raise ApiError(413, f"too many files in one request; at most {limit_files} are allowed") from None
-        raise ApiError(400, f"could not read the multipart form ({exc})") from None
-    files = [v for _, v in form.multi_items() if isinstance(v, UploadFile)]
-    if not files:
-        raise ApiError(422, "the form holds no files (send the capture's files as 'files' parts named by their "
-                       "path inside the capture, or a zip as the request body)")
-    return files
-
-
 async def _receive(request: Request, dest: Path, budget: int) -> tuple[int, int]:
-    """Save a zip body (unpacked safely) or form files under dest; returns (files, bytes received)."""
-    st = get_settings()
+    """Save a zip body (unpacked safely) or form files under dest as they arrive; returns (files, bytes received).
+    The free space is checked as bytes are written (507 when the storage is full)."""
+    st, root = get_settings(), get_storage().root
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    if ctype == "multipart/form-data":
-        files = await _form_files(request, st.max_files)
-        try:
-            return await uploads.save_form_files(files, dest, st, budget)
-        finally:
-            for f in files:
-                await f.close()
-    if ctype in ("application/zip", "application/x-zip-compressed", "application/octet-stream"):
-        zip_path = dest.parent / f".{dest.name}.zip"
-        t0 = time.perf_counter()
-        received = await uploads.stream_to_file(request.stream(), zip_path, budget)
-        t1 = time.perf_counter()
-        await anyio.to_thread.run_sync(uploads.unpack_zip, zip_path, dest, st)
-        request.state.timing = {"receive": t1 - t0, "unpack": time.perf_counter() - t1}
-        return uploads.count_files(dest)[0], received
+    with uploads.disk_full_is_507(root, st.min_free_bytes):
+        if ctype == "multipart/form-data":
+            guard = uploads.space_guard(root, st.min_free_bytes)
+            names, received = await save_multipart(request, dest, budget, st.max_files, guard)
+            uploads.check_suffixes(names, st)
+            return len(names), received
+        if ctype in ("application/zip", "application/x-zip-compressed", "application/octet-stream"):
+            guard = uploads.space_guard(root, st.min_free_bytes)
+            zip_path = dest.parent / f".{dest.name}.zip"
+            t0 = time.perf_counter()
+            received = await uploads.stream_to_file(request.stream(), zip_path, budget, guard)
+            t1 = time.perf_counter()
+            await anyio.to_thread.run_sync(uploads.unpack_zip, zip_path, dest, st, uploads.upload_label(request))
+            request.state.timing = {"receive": t1 - t0, "unpack": time.perf_counter() - t1}
+            return uploads.count_files(dest)[0], received
     raise ApiError(415, f"unsupported content type {ctype or 'none'!r}: send a zip (application/zip) or a "
                    "multipart/form-data form of files")
 
 
-async def _commit(tenant_id: str, folder: Path, name: str, received: int) -> Capture:
+async def _commit(tenant_id: str, folder: Path, name: str, received: int, staged: bool = False) -> Capture:
     st, storage = get_settings(), get_storage()
     root, frames = await uploads.validate_folder(folder, st)
     files, size = uploads.count_files(root)
+    with session_scope() as s:  # the staged bytes of this upload count already when it is a session's
+        quota.check_storage(s, tenant_id, size - received if staged else size)
     capture_id = new_id("cap")
     key = uploads.commit_folder(storage, root, capture_id)
     try:
@@ -86,6 +76,7 @@ async def create_capture(request: Request, response: Response, tenant: TenantDep
                          name: Annotated[str, Query(max_length=200)] = "") -> Capture:
     st, storage = get_settings(), get_storage()
     uploads.check_content_length(request, st.max_upload_bytes)
+    _check_quota(request, tenant.id)
     upload_id = new_id("upl")
     base = storage.path(uploads.staging_key(upload_id))
     try:
@@ -101,9 +92,17 @@ async def create_capture(request: Request, response: Response, tenant: TenantDep
 
 @router.get("/captures", response_model=list[CaptureOut])
 def list_captures(s: SessionDep, tenant: TenantDep, limit: Annotated[int, Query(ge=1, le=500)] = 100,
-                  offset: Annotated[int, Query(ge=0)] = 0) -> list[Capture]:
+                  offset: Offset = 0) -> list[Capture]:
     q = select(Capture).where(Capture.tenant_id == tenant.id).order_by(Capture.created_at.desc())
     return list(s.scalars(q.limit(limit).offset(offset)))
+
+
+def _check_quota(request: Request, tenant_id: str) -> None:
+    """507 before anything is received when the tenant is over its storage quota, or the declared body would not
+    fit (the unpacked size is checked again at commit)."""
+    length = request.headers.get("content-length", "")
+    with session_scope() as s:
+        quota.check_storage(s, tenant_id, int(length) if length.isdigit() else 0)
 
 
 @router.get("/captures/{capture_id}", response_model=CaptureOut)
@@ -112,6 +111,17 @@ def get_capture(capture_id: str, s: SessionDep, tenant: TenantDep) -> Capture:
     if cap is None or cap.tenant_id != tenant.id:
         raise not_found("capture", capture_id)
     return cap
+
+
+@router.delete("/captures/{capture_id}", response_model=Deleted,
+               summary="Delete a capture with its finished jobs and their assets (409 while a job of it is active)")
+def delete_capture(capture_id: str, s: SessionDep, tenant: TenantDep) -> Deleted:
+    cap = s.get(Capture, capture_id)
+    if cap is None or cap.tenant_id != tenant.id:
+        raise not_found("capture", capture_id)
+    jobs, freed = cleanup.delete_capture(s, cap)
+    s.commit()
+    return Deleted(deleted=f"capture {capture_id}", jobs=jobs, bytes_freed=freed)
 
 
 # -- NodeODM-style sessions -----------------------------------------------------------------------------------
@@ -138,17 +148,22 @@ async def upload_files(upload_id: str, request: Request, tenant: TenantDep) -> U
         up = _upload_of(s, tenant.id, upload_id)
         budget = st.max_upload_bytes - up.bytes
     uploads.check_content_length(request, budget)
+    _check_quota(request, tenant.id)
     files_dir = storage.path(uploads.staging_key(upload_id) + "/files")
     part = files_dir.parent / new_id("part")  # this request's files, merged only when all arrived
     try:
         files, received = await _receive(request, part, budget)
         if up.files + files > st.max_files:
             raise ApiError(413, f"the upload would hold {up.files + files} files; at most {st.max_files} are allowed")
-        clashes = [p.relative_to(part).as_posix() for p in part.rglob("*")
-                   if p.is_file() and (files_dir / p.relative_to(part)).exists()]  # fmt: skip
+        twice, clashes = uploads.merge_clashes(part, files_dir)
+        if twice:
+            more = f" (and {len(twice) - 1} more)" if len(twice) > 1 else ""
+            raise ApiError(409, f"the file {shown_name(twice[0])}{more} was already uploaded",
+                           [{"file": c, "message": "already uploaded"} for c in twice[:50]])
         if clashes:
-            raise ApiError(409, f"{len(clashes)} file(s) were already uploaded", [{"file": c, "message": "already "
-                           "uploaded"} for c in clashes[:50]])  # fmt: skip
+            raise ApiError(422, f"the uploaded file {shown_name(clashes[0])} clashes with an earlier file of the "
+                           "upload: a name cannot be both a file and a folder",
+                           [{"file": c, "message": "both a file and a folder"} for c in clashes[:50]])
         for p in sorted(part.rglob("*")):
             if p.is_file():
                 (files_dir / p.relative_to(part)).parent.mkdir(parents=True, exist_ok=True)
@@ -170,7 +185,7 @@ async def commit_upload(upload_id: str, tenant: TenantDep) -> Capture:
         up = _upload_of(s, tenant.id, upload_id)
         name, received = up.name, up.bytes
     base = storage.path(uploads.staging_key(upload_id))
-    cap = await _commit(tenant.id, base / "files", name, received)  # on error the files stay staged (DELETE it)
+    cap = await _commit(tenant.id, base / "files", name, received, staged=True)  # on error the files stay staged
     shutil.rmtree(base, ignore_errors=True)
     with session_scope() as s:
         up2 = s.get(Upload, upload_id)
@@ -184,3 +199,4 @@ def delete_upload(upload_id: str, s: SessionDep, tenant: TenantDep) -> None:
     up = _upload_of(s, tenant.id, upload_id)
     shutil.rmtree(get_storage().path(uploads.staging_key(upload_id)), ignore_errors=True)
     s.delete(up)
+    s.commit()  # before the answer: a request right after it must not find the session

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import Depends, Header
+from fastapi import Depends, Header, Query
 from sqlalchemy.orm import Session
 
 from services import crud
@@ -14,6 +14,8 @@ from services.errors import ApiError
 from services.models import Tenant
 
 SessionDep = Annotated[Session, Depends(get_session)]
+MAX_OFFSET = 2**31 - 1  # a page offset beyond this is a 422 (the database's integers end at 2**63)
+Offset = Annotated[int, Query(ge=0, le=MAX_OFFSET, description="rows to skip")]
 
 
 def current_tenant(s: SessionDep, authorization: Annotated[str | None, Header()] = None,

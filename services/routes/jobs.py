@@ -1,10 +1,13 @@
-"""Jobs: create (config + idempotency key), list (filters, paging), get, cancel, retry/restart, and the progress
-stream (server-sent events; each event's id is its row id, so a client reconnects with Last-Event-ID)."""
+"""Jobs: create (config + idempotency key; the config, device and queue checked here, the tenant's limits too),
+list (filters, paging), get, cancel, retry/restart, and the progress stream (server-sent events; each event's id is
+its row id, so a client reconnects with Last-Event-ID; streams end with an `event: shutdown` when the API stops).
+Records and events are shown without server paths (services/redact.py)."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import re
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -13,12 +16,14 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import IntegrityError
 
-from services import crud
+from services import cleanup, crud, fleet, quota, shutdown
+from services.core.config import STAGE_NAMES
 from services.core.db import session_scope
 from services.errors import ApiError, not_found
-from services.jobconfig import build_config, default_queue
+from services.jobconfig import build_config, default_queue, given
 from services.models import TERMINAL, Capture, Job, now
-from services.routes.deps import SessionDep, TenantDep
+from services.redact import redact_data, redact_text
+from services.routes.deps import Offset, SessionDep, TenantDep
 from services.schemas import JobCreate, JobOut, JobPage, JobRetry, StageRunOut
 
 router = APIRouter(tags=["jobs"])
@@ -26,6 +31,10 @@ router = APIRouter(tags=["jobs"])
 
 def job_out(s: SessionDep, job: Job, runs: bool = True) -> JobOut:
     out = JobOut.model_validate(job)
+    out.message, out.error = redact_text(out.message), redact_text(out.error)
+    out.metrics = redact_data(out.metrics)
+    if job.state == "queued":
+        out.waiting = fleet.queue_waiting(s, job.queue) or None
     if runs:
         out.stage_runs = [StageRunOut.model_validate(r) for r in crud.stage_runs(s, job.id)]
     if job.state == "running" and job.started_at is not None and job.progress > 0.02:
@@ -53,7 +62,8 @@ def _send(job_id: str, stage: str, attempt: int, queue: str) -> None:
 def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: TenantDep,
                idempotency_key: Annotated[str | None, Header(max_length=200)] = None) -> JobOut:
     key = body.idempotency_key or idempotency_key
-    payload = body.model_dump(exclude={"idempotency_key"})
+    overrides = given(body.config)
+    payload = {**body.model_dump(exclude={"idempotency_key", "config"}), "config": overrides}
     digest = crud.request_hash(payload)
     if key:
         found = crud.find_idempotent(s, tenant.id, key)
@@ -66,11 +76,16 @@ def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: Tenan
     if cap is None or cap.tenant_id != tenant.id:
         raise not_found("capture", body.capture_id)
     try:
-        build_config(body.preset, body.config)
+        config = build_config(body.preset, body.config)
     except (ValueError, TypeError) as exc:
         raise ApiError(422, f"bad job config: {exc}") from None
-    job = Job(tenant_id=tenant.id, capture_id=cap.id, preset=body.preset, config=body.config,
-              queue=body.queue or default_queue(body.preset), idempotency_key=key, request_hash=digest)  # fmt: skip
+    queue = body.queue or default_queue(body.preset)
+    problem = fleet.device_problem(s, config.device, queue)
+    if problem:
+        raise ApiError(422, f"bad job config: {problem}")
+    quota.check_new_job(s, tenant.id)
+    job = Job(tenant_id=tenant.id, capture_id=cap.id, preset=body.preset, config=overrides, queue=queue,
+              idempotency_key=key, request_hash=digest, message=fleet.queue_waiting(s, queue))  # fmt: skip
     s.add(job)
     try:
         s.flush()
@@ -81,7 +96,7 @@ def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: Tenan
             raise ApiError(409, f"idempotency key {key!r} was used for a different request") from None
         response.status_code = 200
         return job_out(s, found)
-    crud.add_event(s, job.id, "state", state="queued", stage=job.stage, progress=0.0)
+    crud.add_event(s, job.id, "state", state="queued", stage=job.stage, progress=0.0, message=job.message)
     s.commit()
     _send(job.id, "validate", job.attempt, job.queue)
     s.refresh(job)
@@ -91,7 +106,7 @@ def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: Tenan
 @router.get("/jobs", response_model=JobPage)
 def list_jobs(s: SessionDep, tenant: TenantDep, state: str | None = None, capture_id: str | None = None,
               stage: str | None = None, limit: Annotated[int, Query(ge=1, le=500)] = 50,
-              offset: Annotated[int, Query(ge=0)] = 0) -> JobPage:
+              offset: Offset = 0) -> JobPage:
     rows, total = crud.list_jobs(s, tenant.id, state, capture_id, stage, limit, offset)
     nxt = offset + len(rows) if offset + len(rows) < total else None
     return JobPage(items=[job_out(s, j, runs=False) for j in rows], total=total, limit=limit, offset=offset,
@@ -117,12 +132,15 @@ def cancel_job(job_id: str, s: SessionDep, tenant: TenantDep) -> JobOut:
              summary="Run a failed or canceled job again from its first unfinished stage (or from_stage)")
 def retry_job(job_id: str, s: SessionDep, tenant: TenantDep, body: JobRetry | None = None) -> JobOut:
     job = _get(s, tenant.id, job_id)
-    from_stage = body.from_stage if body else None
+    from_stage: str | None = body.from_stage if body else None
     if job.state not in ("failed", "canceled") and not (job.state == "completed" and from_stage):
         raise ApiError(409, f"job {job_id} is {job.state}; retry needs a failed or canceled job (or a completed "
                        "one with from_stage)")
+    kept = cleanup.kept_stages(job)  # its work folder may have been deleted or reaped (retention)
+    if len(kept) < len(job.stages_done or []) and (from_stage is None or STAGE_NAMES.index(from_stage) > len(kept)):
+        from_stage = STAGE_NAMES[len(kept)]
+    quota.check_new_job(s, tenant.id)
     if from_stage is not None:
-        from services.core.config import STAGE_NAMES
         from services.storage import get_storage
 
         storage = get_storage()
@@ -137,25 +155,38 @@ def retry_job(job_id: str, s: SessionDep, tenant: TenantDep, body: JobRetry | No
     return job_out(s, job)
 
 
+def event_id(header: str | None) -> int:
+    """The Last-Event-ID header as the id to resume after (0 without it); 400 when it is not an event id."""
+    if header is None or not header.strip():
+        return 0
+    if not re.fullmatch(r"[0-9]{1,18}", header.strip()):
+        raise ApiError(400, f"the Last-Event-ID header must be the id of an event (a whole number), not "
+                       f"{header[:40]!r}")
+    return int(header)
+
+
 @router.get("/jobs/{job_id}/events", summary="Progress stream (text/event-stream)",
             response_class=StreamingResponse, responses={200: {"content": {"text/event-stream": {}}}})
 async def job_events(job_id: str, request: Request, tenant: TenantDep,
                      last_event_id: Annotated[str | None, Header()] = None) -> StreamingResponse:
     with session_scope() as s:
         _get(s, tenant.id, job_id)
-    start = int(last_event_id) if last_event_id and last_event_id.isdigit() else 0
+    start = event_id(last_event_id)
 
     def poll(after: int) -> tuple[list[tuple[int, str, str]], str]:
         with session_scope() as s:
             rows = crud.events_after(s, job_id, after)
             job = s.get(Job, job_id)
-            return ([(e.id, e.kind, json.dumps({**e.data, "kind": e.kind, "at": e.created_at.isoformat()}))
+            return ([(e.id, e.kind, json.dumps({**redact_data(e.data), "kind": e.kind, "at": e.created_at.isoformat()}))
                      for e in rows], job.state if job else "canceled")  # fmt: skip
 
     async def stream() -> AsyncIterator[str]:
         after, idle = start, 0.0
         yield "retry: 1000\n\n"
         while not await request.is_disconnected():
+            if shutdown.STOPPING.is_set():
+                yield f"event: shutdown\ndata: {json.dumps({'message': shutdown.MESSAGE})}\n\n"
+                return
             rows, state = await anyio.to_thread.run_sync(poll, after)
             for ident, kind, data in rows:
                 after = ident

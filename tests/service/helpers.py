@@ -18,14 +18,17 @@ KEY_A = "nmx_test_tenant_a_0123456789abcdefghij"
 KEY_B = "nmx_test_tenant_b_0123456789abcdefghij"
 # The smallest real configuration: the tiny preset from a random triplane (no LMRM checkpoint needed).
 TINY = {"init": "random", "device": "cpu"}
+METRICS_TOKEN = "nmx_test_metrics_token_0123456789"
 
 
 class Service(Cluster):
     """The tests' cluster: fast heartbeats and reaping, small upload limits."""
 
     def __init__(self, root: Path):
+        (root / "tmp").mkdir(parents=True, exist_ok=True)  # the processes' TMPDIR, so tests can see what spools there
         super().__init__(root, {**FAST, "NEUMATEX_MAX_UPLOAD_BYTES": str(8 * 1024**2),
-                                "NEUMATEX_MAX_CAPTURE_BYTES": str(32 * 1024**2), "NEUMATEX_MAX_FILES": "200"})
+                                "NEUMATEX_MAX_CAPTURE_BYTES": str(32 * 1024**2), "NEUMATEX_MAX_FILES": "200",
+                                "TMPDIR": str(root / "tmp"), "NEUMATEX_METRICS_TOKEN": METRICS_TOKEN})  # fmt: skip
 
     def client(self, key: str = KEY_A) -> httpx.Client:
         return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {key}"}, timeout=60)

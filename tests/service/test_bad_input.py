@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
-from .helpers import EXAMPLE, KEY_B, Service, capture_zip, upload
+from .helpers import EXAMPLE, KEY_B, METRICS_TOKEN, Service, capture_zip, upload
 
 FILES = sorted(p for p in EXAMPLE.rglob("*") if p.is_file() and p.relative_to(EXAMPLE).parts[0] not in
                ("photos", "gbuffers"))  # fmt: skip
@@ -117,6 +117,12 @@ def test_missing_or_bad_api_key(service: Service) -> None:
         assert r.status_code == 401
 
 
+def metrics(service: Service) -> dict[str, float]:
+    """The service's Prometheus samples, name{labels} -> value."""
+    text = httpx.get(service.url + "/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}).text
+    return {k: float(v) for k, v in (ln.rsplit(" ", 1) for ln in text.splitlines() if ln and ln[0] != "#")}
+
+
 def test_bad_job_requests(service: Service) -> None:
     client = service.client()
     cap = upload(client, capture_zip()).json()
@@ -130,10 +136,13 @@ def test_bad_job_requests(service: Service) -> None:
     with service.client(KEY_B) as other:
         assert other.post("/v1/jobs", json={"capture_id": cap["id"], "preset": "tiny"}).status_code == 404
     assert client.get("/v1/jobs", params={"capture_id": cap["id"]}).json()["total"] == 0  # nothing was queued
+    before = metrics(service)  # other tests may have left canceled messages in the gpu queue: compare, not pin
     gpu = client.post("/v1/jobs", json={"capture_id": cap["id"], "preset": "gpu"}).json()
     assert gpu["queue"] == "gpu" and gpu["state"] == "queued"  # the gpu preset goes to the gpu workers
-    depth = httpx.get(service.url + "/metrics").text
-    assert 'neumatex_queue_depth{queue="gpu"} 1.0' in depth and 'neumatex_jobs{state="queued"} 1.0' in depth
+    assert "no live worker takes the 'gpu' queue" in gpu["waiting"]  # flagged, not queued silently
+    after = metrics(service)
+    for name in ('neumatex_queue_depth{queue="gpu"}', 'neumatex_jobs{state="queued"}'):
+        assert after.get(name, 0.0) == before.get(name, 0.0) + 1.0, (name, before, after)
     assert client.post(f"/v1/jobs/{gpu['id']}/cancel").json()["state"] == "canceled"
     assert client.post(f"/v1/jobs/{gpu['id']}/retry", json={"from_stage": "nope"}).status_code == 422
     client.close()

@@ -9,7 +9,7 @@ import zipfile
 
 import httpx
 
-from .helpers import KEY_A, KEY_B, Service, capture_zip, job, sse_events, submit, upload, wait_state
+from .helpers import KEY_A, KEY_B, METRICS_TOKEN, Service, capture_zip, job, sse_events, submit, upload, wait_state
 
 
 def test_upload_to_asset_with_monotone_sse_progress(service: Service) -> None:
@@ -96,7 +96,8 @@ def sse_events_after(service: Service, job_id: str, after: int) -> list[dict]:
 
 
 def service_metrics(service: Service) -> str:
-    return httpx.get(service.url + "/metrics", timeout=30).text
+    assert httpx.get(service.url + "/metrics", timeout=30).status_code == 401  # counts over every tenant
+    return httpx.get(service.url + "/metrics", headers={"Authorization": f"Bearer {METRICS_TOKEN}"}, timeout=30).text
 
 
 def c_get(service: Service, path: str) -> dict:
