@@ -497,9 +497,33 @@ def _gbuffer_images(field_gbuffer: Callable[[torch.Tensor], torch.Tensor], mesh:
         items = [("base colour", image(g[:, :3] ** (1 / 2.2))), ("latent 0-2", image((g[:, 3:6] + 1) / 2)),
                  ("latent 3-5", image((g[:, 6:9] + 1) / 2))]  # fmt: skip
         if unc is not None:
-            sd = torch.exp(0.5 * unc(pts).cpu()).mean(-1, keepdim=True)
-            items.append(("std, mean over channels, x4", image((4 * sd).clamp(0, 1).expand(-1, 3))))
+            from neumatex_core.report_images import colour_bar, scalar_map
+
+            sd = torch.zeros(h * w)
+            sd[idx] = torch.exp(0.5 * unc(pts).cpu()).mean(-1).float()
+            sd_img, lo, hi = scalar_map(sd.reshape(h, w).numpy(), idx.reshape(h, w).cpu().numpy())
+            items.append((f"std, mean over channels ({lo:.3g} to {hi:.3g})", sd_img))
+            items.append((f"std colour scale: bottom {lo:.3g}, top {hi:.3g}", colour_bar(h, w)))
     return items
+
+
+def _comparison_row(index: int, photo: np.ndarray, neural: np.ndarray, pbr: np.ndarray, psnr_neural: float,
+                    psnr_pbr: float) -> list[tuple[str, np.ndarray]]:
+    """One report row per photo: the photo, both re-renders with their PSNR (dB) and the gain, and x4 differences.
+
+    Images [H, W, 3] display-referred in [0, 1]."""
+    from neumatex_core.report_images import difference_image
+
+    gain = psnr_neural - psnr_pbr
+    return [(f"photo {index}", photo), (f"neural {index}: {psnr_neural:.2f} dB ({gain:+.2f} dB vs PBR)", neural),
+            (f"PBR fallback {index}: {psnr_pbr:.2f} dB", pbr),
+            (f"|neural - photo| x4, view {index}", difference_image(neural, photo)),
+            (f"|PBR - photo| x4, view {index}", difference_image(pbr, photo))]  # fmt: skip
+
+
+def _report_columns(sections: dict[str, list[tuple[str, np.ndarray]]]) -> dict[str, int]:
+    """Grid columns per report section: 5 for the photo comparisons (one photo per row), 4 elsewhere."""
+    return {name: 5 if name.startswith("Photo |") else 4 for name in sections}
 
 
 def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Progress | None) -> dict[str, Any]:
@@ -512,12 +536,13 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
     from neumatex_core.fields.neural_field import TriplaneMaterialField
     from neumatex_core.render.path_tracer import PathTracerConfig
     from neumatex_core.report import ReportContent, write_report
+    from neumatex_core.report_relight import relight_map_path, relit_images
 
     device = config.torch_device()
     pred, record = load_prediction(work, device)
     tto = effective_tto(config, bool(record["trained"]))
     if tto.material != "neural":
-        raise PipelineError("material='pbr' is the PBR baseline for evaluation; an asset holds a neural material")
+        raise PipelineError(evaluation_only(tto))
     stored = load_file(str(stage_dir(work, "tto") / "result.safetensors"))
     tensor = stored["tensor"].to(device)
     material_decoder = pred.material_decoder
@@ -566,19 +591,24 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
             _emit(progress, "export", 0.6, f"re-rendering {n_eval} photos")
             picks = np.linspace(0, len(cap.frames) - 1, n_eval).round().astype(int).tolist()
             cams = [norm.cameras[i] for i in picks]
-            renders = render_asset(asset, norm.envmap, cams, PathTracerConfig(spp=config.eval_spp,
-                                   max_bounces=max(tto.max_bounces, 2)), seed=config.seed)  # fmt: skip
-            scores = []
-            for i, img in zip(picks, renders, strict=True):
+            eval_tracer = PathTracerConfig(spp=config.eval_spp, max_bounces=max(tto.max_bounces, 2))
+            renders = render_asset(asset, norm.envmap, cams, eval_tracer, seed=config.seed)
+            pbr_renders = render_asset(asset, norm.envmap, cams, eval_tracer, source="pbr", seed=config.seed)
+            scores, pbr_scores = [], []
+            for i, img, pbr_img in zip(picks, renders, pbr_renders, strict=True):
                 photo = torch.as_tensor(cap.load_image(i))
-                shown = cap.tonemap.apply(img.cpu())
+                shown, pbr_shown = cap.tonemap.apply(img.cpu()), cap.tonemap.apply(pbr_img.cpu())
                 m = render_gbuffer(norm.mesh, norm.cameras[i]).mask
                 user = cap.load_mask(i)
                 if user is not None:
                     m = m & torch.as_tensor(user)
                 scores.append(psnr(shown, photo, m))
-                photo_items += [(f"photo {i}", photo.numpy()), (f"ours {i}", shown.numpy())]
+                pbr_scores.append(psnr(pbr_shown, photo, m))
+                photo_items += _comparison_row(i, photo.numpy(), shown.numpy(), pbr_shown.numpy(),
+                                               float(scores[-1]), float(pbr_scores[-1]))  # fmt: skip
             asset.metrics["psnr_photos"] = float(np.mean(scores))
+            asset.metrics["psnr_photos_pbr"] = float(np.mean(pbr_scores))
+            asset.metrics["psnr_gain_db"] = asset.metrics["psnr_photos"] - asset.metrics["psnr_photos_pbr"]
             asset.metrics["psnr_photos_spp"] = float(config.eval_spp)
         out = stage_dir(work, "export")
         target = out / ASSET_DIR
@@ -586,8 +616,20 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
         write_asset(asset, target, overwrite=True)
         sections: dict[str, list[tuple[str, np.ndarray]]] = {
             "Preview renders (neural field, then PBR fallback)": sorted(asset.previews.items()),
-            "Photos and re-renders": photo_items,
+            "Photo | neural | PBR fallback | |neural - photo| x4 | |PBR - photo| x4 (PSNR in dB)": photo_items,
         }
+        relight_path = relight_map_path(cap.root / "envmap.exr")
+        if relight_path is not None:
+            _emit(progress, "export", 0.85, f"relighting under {relight_path.name}")
+            relight_cams = [preset_views(config.preview_resolution)[v] for v in (0, 4)]
+
+            def render_views(envmap: EnvironmentMap) -> list[tuple[int, np.ndarray]]:
+                imgs = render_asset(asset, envmap, relight_cams, PathTracerConfig(spp=config.preview_spp,
+                                    max_bounces=3), seed=config.seed)  # fmt: skip
+                return [(v, cap.tonemap.apply(img.cpu()).numpy()) for v, img in zip((0, 4), imgs, strict=True)]
+
+            sections["Relit (neural material under another shared map)"] = relit_images(render_views, relight_path,
+                                                                                        str(device))
         if gbuffer is not None:
             def lmrm_unc(p: torch.Tensor) -> torch.Tensor:
                 return pred.uncertainty_decoder(pred.triplane.features(p.to(device)))
@@ -604,14 +646,19 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                     gb_items += [(f"view {v} LMRM {c}", img)
                                  for c, img in _gbuffer_images(lmrm_gbuffer, norm.mesh, cam, unc)]  # fmt: skip
             sections["Material G-buffers (ours after TTO; the LMRM's prediction and uncertainty)"] = gb_items
-        notes = [f"Capture {capture}; {len(cap.frames)} photos; preset views: {provenance['views']}.",
+        run_line = (f"Ran: preset {config.preset_name}, {int(metrics['tto_steps'])} TTO steps, "
+                    f"{sum(v for k, v in timings.items() if not k.endswith('_cpu_s')):.0f} s before export; "
+                    f"neural {asset.metrics.get('psnr_photos', float('nan')):.2f} dB vs PBR fallback "
+                    f"{asset.metrics.get('psnr_photos_pbr', float('nan')):.2f} dB on the photos.")  # fmt: skip
+        notes = [run_line, f"Capture {capture}; {len(cap.frames)} photos; preset views: {provenance['views']}.",
                  f"Start: {record['source']}; TTO {tto.steps} steps of {tto.pixels} pixels x {tto.spp} spp, "
                  f"{tto.max_bounces} bounces; field {tto.field}, init {tto.init}, reg {tto.reg}."]  # fmt: skip
         if not record["trained"]:
             notes.append("No trained LMRM checkpoint was available: the triplane started from random values and the "
                          "TTO ran without the uncertainty regulariser.")  # fmt: skip
         report = write_report(ReportContent(f"NeuMatEx extraction: {name}", sections, history, asset.metrics,
-                                            asset.timings, {"preset": config.preset_name, **tto.to_dict()}, notes),
+                                            asset.timings, {"preset": config.preset_name, **tto.to_dict()}, notes,
+                                            asset.metrics.get("psnr_photos_pbr"), _report_columns(sections)),
                               target / "report")  # fmt: skip
     return {**asset.metrics, "asset": str(target), "report": str(report)}
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import html
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,8 +22,8 @@ from neumatex_core.lmrm.plots import line_chart
 
 @dataclass
 class ReportContent:
-    """title; images: caption -> display image [H, W, 3] in [0, 1] (a captioned grid per section); history: TTO rows;
-    metrics, timings, settings: flat tables; notes: sentences shown at the top."""
+    """title; sections: name -> captioned display images [H, W, 3] in [0, 1] (a grid per section); history: TTO
+    rows; metrics, timings, settings: flat tables; notes: sentences shown at the top (the first: what was run)."""
 
     title: str
     sections: dict[str, list[tuple[str, np.ndarray]]] = field(default_factory=dict)
@@ -31,6 +32,8 @@ class ReportContent:
     timings: dict[str, float] = field(default_factory=dict)
     settings: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    pbr_psnr: float | None = None  # dB, the PBR fallback's PSNR on the photos: a level marked on the PSNR curve
+    columns: dict[str, int] = field(default_factory=dict)  # section -> grid columns (default: fill the width)
 
 
 def _slug(text: str) -> str:
@@ -60,23 +63,31 @@ def write_report(content: ReportContent, folder: Path) -> Path:
             write_image(folder / png, np.clip(img[:, :, :3], 0, 1).astype(np.float32))
             figures.append(f"<figure><img src='{png}' alt='{html.escape(caption)}'>"
                            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
-        parts.append(f"<h2>{html.escape(name)}</h2><div class='grid'>{''.join(figures)}</div>")
+        n_columns = content.columns.get(name)
+        grid_style = f" style='grid-template-columns:repeat({n_columns},minmax(256px,1fr))'" if n_columns else ""
+        parts.append(f"<h2>{html.escape(name)}</h2><div class='grid'{grid_style}>{''.join(figures)}</div>")
     if content.history:
         steps = [r["step"] for r in content.history]
+        psnr_series: dict[str, tuple[Sequence[float], Sequence[float]]] = {
+            "psnr": (steps, [r["psnr"] for r in content.history])}
+        if content.pbr_psnr is not None:  # a flat line at the PBR fit's level
+            psnr_series["PBR fallback (photos)"] = ([steps[0], steps[-1]], [content.pbr_psnr] * 2)
         line_chart([
             ("loss (total, photometric)", {"loss": (steps, [r["loss"] for r in content.history]),
                                            "photo": (steps, [r["photo"] for r in content.history])}, True),
-            ("batch PSNR (dB, tonemapped)", {"psnr": (steps, [r["psnr"] for r in content.history])}, False),
+            ("batch PSNR (dB, tonemapped)", psnr_series, False),
         ], folder / "curves.png")  # fmt: skip
         (folder / "history.json").write_text(json.dumps(content.history) + "\n")
         parts.append("<h2>TTO curves</h2><img src='curves.png'>"
-                     "<p class='cap'>per step; history.json has the values</p>")
+                     "<p class='cap'>per step; history.json has the values; the flat line is the PBR fallback's "
+                     "PSNR on the photos</p>")
     for name, rows in (("Metrics", content.metrics), ("Timings (seconds)", content.timings),
                        ("Settings", content.settings)):  # fmt: skip
         if rows:
             parts.append(f"<h2>{name}</h2>{_table(rows)}")
-    style = ("body{font-family:sans-serif;margin:2em;max-width:1200px} img{image-rendering:pixelated;max-width:100%}"
-             " .grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(150px,1fr));gap:8px}"
+    style = ("body{font-family:sans-serif;margin:2em;max-width:1500px}"
+             " img{image-rendering:pixelated;max-width:100%;min-width:256px}"
+             " .grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(256px,1fr));gap:8px}"
              " figure{margin:0} figure img{width:100%} figcaption{color:#555;font-size:80%}"
              " table{border-collapse:collapse} th,td{border:1px solid #ccc;padding:2px 8px;text-align:left}"
              " .cap{color:#555;font-size:90%}")  # fmt: skip
