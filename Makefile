@@ -56,13 +56,13 @@ demo: install
 	@echo "demo: open out/demo/teapot-asset/report/index.html (asset package in out/demo/teapot-asset/)"
 
 test: install sysdeps cycles-env
-	$(VENV)/bin/ruff check neumatex_core services workers tests bench tools
-	$(VENV)/bin/mypy neumatex_core services workers
+	$(VENV)/bin/ruff check neumatex_core neumatex_client services workers tests bench tools
+	$(VENV)/bin/mypy neumatex_core neumatex_client services workers
 	NEUMATEX_SHARED=$(SHARED) $(PY) -m pytest -q
 
 lint: install
-	$(VENV)/bin/ruff check neumatex_core services workers tests bench tools
-	$(VENV)/bin/mypy neumatex_core services workers
+	$(VENV)/bin/ruff check neumatex_core neumatex_client services workers tests bench tools
+	$(VENV)/bin/mypy neumatex_core neumatex_client services workers
 
 bench: install sysdeps
 	$(PY) bench/render.py

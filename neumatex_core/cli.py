@@ -313,7 +313,24 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
 }
 
 
+# Job service client commands (neumatex_client/cli.py), handed over whole: imported only when one of them runs.
+CLIENT_COMMANDS = {"submit": "upload captures to the job service and start jobs (--wait, --out: the assets)",
+                   "jobs": "list the job service's jobs", "job": "show one job of the job service",
+                   "cancel": "cancel jobs of the job service", "retry": "run a failed or canceled job again",
+                   "download": "download a completed job's asset zip"}
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in CLIENT_COMMANDS:
+        import importlib.util
+
+        if importlib.util.find_spec("neumatex_client") is None:
+            print("error: the job service client (neumatex_client/) is not installed", file=sys.stderr)
+            return 2
+        from neumatex_client.cli import main as client_main  # the web client stays out of the core's imports
+
+        return client_main(argv)
     parser = argparse.ArgumentParser(prog="neumatex", description="Neural material extraction (NeuMatEx).")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an input error")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -322,6 +339,8 @@ def main(argv: list[str] | None = None) -> int:
     p_serve = sub.add_parser("serve", help="the job service on this machine: redis-server, the API and one worker "
                              "(python -m services serve; prints the dashboard URL)")  # fmt: skip
     p_serve.add_argument("args", nargs=argparse.REMAINDER, help="passed on to `python -m services serve`")
+    for name, text in CLIENT_COMMANDS.items():
+        sub.add_parser(name, help=text, add_help=False)  # listed here; parsed by neumatex_client.cli
     for name, (cls, _) in COMMANDS.items():
         doc = (cls.__doc__ or "").strip()
         p = sub.add_parser(name, help=doc.split("\n")[0], description=doc)

@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session
 from neumatex_core.pipeline import is_done
 from services.core.config import get_settings
 from services.errors import ApiError
-from services.models import ACTIVE, TERMINAL, Capture, Event, Job, StageRun, now
+from services.models import ACTIVE, TERMINAL, Capture, Event, Job, StageRun, WebhookDelivery, now
 from services.quota import folder_bytes
 from services.storage import get_storage
 
@@ -61,6 +61,7 @@ def delete_capture(s: Session, cap: Capture) -> tuple[list[str], int]:
     if ids:
         s.execute(delete(Event).where(Event.job_id.in_(ids)))
         s.execute(delete(StageRun).where(StageRun.job_id.in_(ids)))
+        s.execute(delete(WebhookDelivery).where(WebhookDelivery.job_id.in_(ids)))
         s.execute(delete(Job).where(Job.id.in_(ids)))
     freed += remove(cap.storage_key)
     s.delete(cap)

@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from services.core.config import STAGE_NAMES
 from services.core.security import hash_api_key, new_api_key
-from services.models import ACTIVE, ApiKey, Event, Job, StageRun, Tenant, now
+from services.models import ACTIVE, TERMINAL, ApiKey, Event, Job, StageRun, Tenant, now
 
 # Share of the overall progress per stage (TTO dominates).
 STAGE_WEIGHTS = {"validate": 0.05, "prepare_views": 0.15, "lmrm": 0.05, "tto": 0.6, "export": 0.15}
@@ -74,6 +74,10 @@ def tenant_for_key(s: Session, key: str) -> Tenant | None:
 # -- events ---------------------------------------------------------------------------------------------------
 def add_event(s: Session, job_id: str, kind: str, **data: Any) -> None:
     s.add(Event(job_id=job_id, kind=kind, data=data))
+    if kind == "state" and data.get("state") in TERMINAL:  # every terminal transition passes here: its webhook
+        from services import webhooks
+
+        webhooks.enqueue(s, job_id, str(data["state"]))
 
 
 def events_after(s: Session, job_id: str, after: int, limit: int = 500) -> list[Event]:

@@ -78,14 +78,16 @@ def create_app(reaper: bool = True) -> FastAPI:
 
             with session_scope() as s:
                 ensure_tenant(s, st.bootstrap_tenant, st.bootstrap_api_key)
-        thread = None
+        threads: list[Any] = []
         if reaper:
             from services.reaper import Reaper
+            from services.webhooks import WebhookSender
 
-            thread = Reaper()
-            thread.start()
+            threads = [Reaper(), WebhookSender()]
+            for thread in threads:
+                thread.start()
         yield
-        if thread is not None:
+        for thread in threads:
             thread.stopped.set()
 
     app = FastAPI(title="NeuMatEx job service", version="1", lifespan=lifespan,

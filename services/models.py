@@ -1,5 +1,6 @@
 """Tables: tenants, API keys (hashed), uploads (init/upload/commit sessions), captures, jobs, stage runs, events,
-per-tenant limits, and the workers' presence (which queues live workers take, and whether they can run CUDA).
+per-tenant limits, webhook deliveries, and the workers' presence (which queues live workers take, and whether they
+can run CUDA).
 
 The job row is the source of truth: state (queued, running, completed, failed, canceled), the current stage,
 overall progress in [0, 1], metrics and timings per stage, the error in plain words, the idempotency key, the
@@ -97,6 +98,7 @@ class Job(Base):
     heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
     dispatched_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)  # None: not sent yet
     asset_key: Mapped[str | None] = mapped_column(String(300), nullable=True)
+    webhook_url: Mapped[str | None] = mapped_column(String(2000), nullable=True)  # POSTed when the job ends
     created_at: Mapped[datetime] = mapped_column(DateTime, default=now, index=True)
     updated_at: Mapped[datetime] = mapped_column(DateTime, default=now, onupdate=now)
     started_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
@@ -128,6 +130,26 @@ class Event(Base):
     kind: Mapped[str] = mapped_column(String(32))  # state, stage, progress, requeued, worker
     data: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(DateTime, default=now)
+
+
+class WebhookDelivery(Base):
+    """One webhook notification of a job reaching a terminal state (services/webhooks.py): pending until its URL
+    answers 2xx (delivered) or max attempts are spent (failed); `log` holds every attempt. No foreign key, so
+    deleting a job's records leaves it to be dropped by the sender."""
+
+    __tablename__ = "webhook_deliveries"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True, default=lambda: new_id("whd"))
+    job_id: Mapped[str] = mapped_column(String(32), index=True)
+    tenant_id: Mapped[str] = mapped_column(String(32))
+    url: Mapped[str] = mapped_column(String(2000))
+    state: Mapped[str] = mapped_column(String(16))  # the job's terminal state it announces
+    job_attempt: Mapped[int] = mapped_column(Integer, default=1)
+    status: Mapped[str] = mapped_column(String(16), default="pending", index=True)  # pending, delivered, failed
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_at: Mapped[datetime] = mapped_column(DateTime, default=now, index=True)
+    log: Mapped[list[dict[str, Any]]] = mapped_column(JSON, default=list)
+    created_at: Mapped[datetime] = mapped_column(DateTime, default=now)
+    delivered_at: Mapped[datetime | None] = mapped_column(DateTime, nullable=True)
 
 
 class TenantLimits(Base):

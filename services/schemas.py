@@ -40,6 +40,8 @@ class JobCreate(BaseModel):
     config: JobConfig = Field(default_factory=JobConfig, description="ExtractConfig field overrides; TTO under 'tto'")
     queue: Literal["cpu", "gpu"] | None = None
     idempotency_key: str | None = Field(None, max_length=200, description="or the Idempotency-Key header")
+    webhook_url: str | None = Field(None, max_length=2000, description="http(s) URL POSTed a signed JSON body when "
+                                    "the job completes, fails or is canceled (docs/service.md, Webhooks)")
 
 
 class JobRetry(BaseModel):
@@ -55,6 +57,27 @@ class StageRunOut(BaseModel):
     started_at: datetime
     finished_at: datetime | None
     seconds: float | None
+
+
+class WebhookAttemptOut(BaseModel):
+    at: str
+    status_code: int | None = Field(description="the receiver's answer; null: no answer (connection error)")
+    error: str = Field(description="empty when delivered")
+    seconds: float
+
+
+class WebhookDeliveryOut(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+    id: str
+    url: str
+    state: str = Field(description="the job's terminal state announced")
+    job_attempt: int
+    status: str = Field(description="pending, delivered or failed (attempts spent)")
+    attempts: int
+    next_at: datetime | None = Field(None, description="when a pending delivery is tried next")
+    created_at: datetime
+    delivered_at: datetime | None
+    log: list[WebhookAttemptOut]
 
 
 class JobOut(BaseModel):
@@ -84,6 +107,8 @@ class JobOut(BaseModel):
     waiting: str | None = Field(None, description="why a queued job is not running yet (no live worker takes its "
                                 "queue), else null")  # fmt: skip
     stage_runs: list[StageRunOut] = []
+    webhook_url: str | None = None
+    webhooks: list[WebhookDeliveryOut] = Field([], description="webhook deliveries with every attempt (job page)")
 
 
 class JobPage(BaseModel):
@@ -119,6 +144,11 @@ class QuotaOut(BaseModel):
     storage: StorageUsage
     jobs: JobsUsage
     work_retention_s: float | None = Field(description="finished jobs' work folders are removed after this; null: kept")
+
+
+class WebhookSecret(BaseModel):
+    secret: str = Field(description="HMAC-SHA256 key of this tenant's webhook signatures")
+    header: str = Field(description="the signature header: t=<unix seconds>,v1=<hex HMAC of '<t>.' + raw body>")
 
 
 class Deleted(BaseModel):

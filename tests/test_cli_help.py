@@ -13,7 +13,7 @@ import pytest
 from neumatex_core import cli
 from services import __main__ as service_cli
 
-COMMANDS = ["validate", "serve", *cli.COMMANDS]
+COMMANDS = ["validate", "serve", *cli.CLIENT_COMMANDS, *cli.COMMANDS]
 SERVICE_COMMANDS = ["serve", "api", "worker", "create-tenant", "reap", "set-limits"]
 
 

@@ -62,6 +62,15 @@ class Settings(BaseSettings):
     public_url: str = "http://127.0.0.1:8000"
     cors_origins: list[str] = []
 
+    # webhooks (services/webhooks.py): POSTed by the API process when a job ends, signed with HMAC-SHA256
+    webhook_secret: str = ""  # the tenants' signing secrets derive from it (empty: <data_dir>/webhook-secret.txt)
+    webhook_allow_private: bool = False  # allow webhook URLs on loopback/private/link-local addresses (tests, LANs)
+    webhook_timeout_s: float = 10.0  # per delivery attempt
+    webhook_max_attempts: int = 8  # then the delivery is marked failed
+    webhook_backoff_s: float = 5.0  # first retry after this, doubling per attempt (Retry-After is honoured)
+    webhook_max_backoff_s: float = 3600.0
+    webhook_poll_s: float = 1.0  # how often the sender looks for due deliveries
+
     @model_validator(mode="after")
     def _check(self) -> Settings:
         longest = max(self.stage_time_limits.values())

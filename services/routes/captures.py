@@ -131,6 +131,7 @@ def init_upload(body: UploadInit, s: SessionDep, tenant: TenantDep) -> Upload:
     s.add(up)
     s.flush()
     get_storage().path(uploads.staging_key(up.id) + "/files").mkdir(parents=True, exist_ok=True)
+    s.commit()  # before the answer: the client's next request (its files) must find the session
     return up
 
 

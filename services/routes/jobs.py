@@ -16,7 +16,7 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import IntegrityError
 
-from services import cleanup, crud, fleet, quota, shutdown
+from services import cleanup, crud, fleet, quota, shutdown, webhooks
 from services.core.config import STAGE_NAMES
 from services.core.db import session_scope
 from services.errors import ApiError, not_found
@@ -24,7 +24,7 @@ from services.jobconfig import build_config, default_queue, given
 from services.models import TERMINAL, Capture, Job, now
 from services.redact import redact_data, redact_text
 from services.routes.deps import Offset, SessionDep, TenantDep
-from services.schemas import JobCreate, JobOut, JobPage, JobRetry, StageRunOut
+from services.schemas import JobCreate, JobOut, JobPage, JobRetry, StageRunOut, WebhookDeliveryOut
 
 router = APIRouter(tags=["jobs"])
 
@@ -37,6 +37,10 @@ def job_out(s: SessionDep, job: Job, runs: bool = True) -> JobOut:
         out.waiting = fleet.queue_waiting(s, job.queue) or None
     if runs:
         out.stage_runs = [StageRunOut.model_validate(r) for r in crud.stage_runs(s, job.id)]
+        if job.webhook_url:
+            out.webhooks = [WebhookDeliveryOut.model_validate(d) for d in webhooks.deliveries_of(s, job.id)]
+            for d in out.webhooks:
+                d.next_at = d.next_at if d.status == "pending" else None
     if job.state == "running" and job.started_at is not None and job.progress > 0.02:
         elapsed = (now() - job.started_at).total_seconds()
         out.eta_s = max(0.0, elapsed * (1 - job.progress) / job.progress)
@@ -83,9 +87,14 @@ def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: Tenan
     problem = fleet.device_problem(s, config.device, queue)
     if problem:
         raise ApiError(422, f"bad job config: {problem}")
+    if body.webhook_url is not None:
+        bad_url = webhooks.url_problem(body.webhook_url)
+        if bad_url:
+            raise ApiError(422, bad_url)
     quota.check_new_job(s, tenant.id)
     job = Job(tenant_id=tenant.id, capture_id=cap.id, preset=body.preset, config=overrides, queue=queue,
-              idempotency_key=key, request_hash=digest, message=fleet.queue_waiting(s, queue))  # fmt: skip
+              idempotency_key=key, request_hash=digest, message=fleet.queue_waiting(s, queue),
+              webhook_url=body.webhook_url)  # fmt: skip
     s.add(job)
     try:
         s.flush()

@@ -1,5 +1,6 @@
 """The caller's tenant: GET /v1/quota (stored bytes and active jobs against the tenant's limits, and the work
-folders' retention) and GET /v1/me (the tenant and its quota)."""
+folders' retention), GET /v1/me (the tenant and its quota) and GET /v1/webhook-secret (the key its webhooks are
+signed with)."""
 
 from __future__ import annotations
 
@@ -7,10 +8,10 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from services import quota
+from services import quota, webhooks
 from services.core.config import get_settings
 from services.routes.deps import SessionDep, TenantDep
-from services.schemas import JobsUsage, QuotaOut, StorageUsage
+from services.schemas import JobsUsage, QuotaOut, StorageUsage, WebhookSecret
 
 router = APIRouter(tags=["tenant"])
 
@@ -31,3 +32,8 @@ def get_quota(s: SessionDep, tenant: TenantDep) -> QuotaOut:
 def me(s: SessionDep, tenant: TenantDep) -> dict[str, Any]:
     return {"tenant": {"id": tenant.id, "name": tenant.name, "created_at": tenant.created_at.isoformat()},
             "quota": get_quota(s, tenant).model_dump()}  # fmt: skip
+
+
+@router.get("/webhook-secret", response_model=WebhookSecret, summary="The secret of this tenant's webhook signatures")
+def webhook_secret(tenant: TenantDep) -> WebhookSecret:
+    return WebhookSecret(secret=webhooks.tenant_secret(tenant.id), header=webhooks.SIGNATURE_HEADER)

@@ -28,7 +28,11 @@ class Service(Cluster):
         (root / "tmp").mkdir(parents=True, exist_ok=True)  # the processes' TMPDIR, so tests can see what spools there
         super().__init__(root, {**FAST, "NEUMATEX_MAX_UPLOAD_BYTES": str(8 * 1024**2),
                                 "NEUMATEX_MAX_CAPTURE_BYTES": str(32 * 1024**2), "NEUMATEX_MAX_FILES": "200",
-                                "TMPDIR": str(root / "tmp"), "NEUMATEX_METRICS_TOKEN": METRICS_TOKEN})  # fmt: skip
+                                "TMPDIR": str(root / "tmp"), "NEUMATEX_METRICS_TOKEN": METRICS_TOKEN,
+                                # webhooks to a receiver in the test (loopback), retried quickly
+                                "NEUMATEX_WEBHOOK_ALLOW_PRIVATE": "true", "NEUMATEX_WEBHOOK_BACKOFF_S": "0.5",
+                                "NEUMATEX_WEBHOOK_POLL_S": "0.2"})  # fmt: skip
+        self.env["NEUMATEX_PUBLIC_URL"] = self.url
 
     def client(self, key: str = KEY_A) -> httpx.Client:
         return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {key}"}, timeout=60)
