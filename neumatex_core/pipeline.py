@@ -455,7 +455,7 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
         norm = _normalised(cap, work, device)
         photos = _photo_set(norm, device)
         tonemap = cap.tonemap
-    basis = load_basis(str(device))
+    basis = load_basis(str(device), tto.basis)
     t0 = time.perf_counter()
 
     def on_step(step: int, total: int, row: dict[str, float]) -> None:
@@ -555,7 +555,7 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
     stage_metrics = {s: read_done(work, s) for s in STAGES[:-1]}
     timings = {f"{s}_s": float(m.get("seconds", 0.0)) for s, m in stage_metrics.items()}
     timings.update({f"{s}_cpu_s": float(m.get("cpu_seconds", 0.0)) for s, m in stage_metrics.items()})
-    basis = load_basis(str(device))
+    basis = load_basis(str(device), tto.basis)
     with _open_capture(capture) as cap:
         norm = _normalised(cap, work, device)
         name = config.name or cap.root.name

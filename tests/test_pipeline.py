@@ -102,6 +102,20 @@ def test_stages_are_idempotent_and_resume_after_an_interruption(tmp_path, tiny_l
         assert (out / "report" / src).is_file(), src
 
 
+def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp_path, tiny_lmrm):
+    """TTOConfig.basis: the neural TTO from the PBR solution in basis v2; the asset names v2 and reads back in it.
+    A start or anchor from the LMRM (whose latents are the default basis's) is refused with the reason."""
+    from neumatex_core.eval.variants import BASIS_V2
+    from neumatex_core.tto.config import TTOConfig
+
+    tto = TTOConfig.preset("tiny", steps=4, pbr_steps=4, reg="none", basis=BASIS_V2)
+    with pytest.raises(ValueError, match="another basis needs init 'pbr' or 'random'"):
+        config(tiny_lmrm, tto=tto).check()  # init "lmrm" by default
+    out = extract(EXAMPLE / "photos", tmp_path / "asset", config(tiny_lmrm, init="pbr", tto=tto))
+    asset = read_asset(out)
+    assert asset.basis.basis_id == BASIS_V2 != load_basis().basis_id
+
+
 def test_bad_capture_raises_a_pipeline_error_naming_the_file(tmp_path, tiny_lmrm):
     capture = tmp_path / "capture"
     shutil.copytree(EXAMPLE, capture, ignore=shutil.ignore_patterns("photos", "gbuffers"))

@@ -124,7 +124,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
         photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
                           [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
         truth = truth_lookup(gt) if tto.reg == "oracle" else None
-        result = solve(tto, mesh, env, photos, cap.tonemap, pred, load_basis(), truth=truth)
+        result = solve(tto, mesh, env, photos, cap.tonemap, pred, load_basis(basis_id=tto.basis), truth=truth)
         params, scene_mesh = result.params, result.mesh or mesh
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     basis = load_basis()

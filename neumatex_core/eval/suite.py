@@ -53,6 +53,10 @@ ROW_NAMES = {
     "t3d_oracle": "(d) TTO, oracle uncertainty",
     "ours_pbr_start_no_reg": "neural from the PBR solution (init pbr), no regulariser",
     "ours_pbr_start": "neural from the PBR solution (init pbr) + unc. reg",
+    "pbr_start_v2": "neural from the PBR solution, no regulariser, basis v2 (decoder frozen)",
+    "pbr_start_v2_decoder": "neural from the PBR solution, no regulariser, basis v2, decoder fine-tuned",
+    "pbr_start_fit_only": "the PBR solution expressed in the basis (1 neural step)",
+    "pbr_start_lr_005": "neural from the PBR solution, no regulariser, lr 0.05",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -64,6 +68,11 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                "psnr_relight_clean"),
     "starts": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
                "psnr_relight_clean", "tto_minutes"),
+    # Latents are left out: another basis's latents are not comparable with the ground truth's
+    "basis": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
+              "tto_minutes"),
+    "neural_phase": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                     "psnr_relight_clean", "tto_minutes"),
 }
 FIGURE_VARIANTS = ("ours", "pbr")
 
@@ -77,7 +86,7 @@ class EvalConfig:
                        positional=True)
     out: str = option("runs/eval", "work folder and per-(object, variant) results; rerun the command to resume")
     objects: str = option("all", "'all', 'first:N', 'every:K' (objects 0, K, 2K, ...) or comma-separated ids")
-    tables: str = option("table1,table2,table3", "comma-separated subset of table1, table2, table3, starts")
+    tables: str = option("table1,table2,table3", "comma-separated subset of " + ", ".join(TABLES))
     preset: Literal["cpu", "gpu", "tiny"] = option("cpu", "extraction preset (TTO schedule, sample counts)")
     steps: int = option(0, "TTO steps (0: the preset's)")
     render_views: int = option(17, "orbital views scored for PSNR PathTrace (0..N-1; 17: all)")
@@ -555,7 +564,10 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         title = {"table1": "Table 1: PBR baseline vs neural material",
                  "table2": "Table 2: design ablation (UV / triplane x LMRM init x uncertainty regulariser)",
                  "table3": "Table 3: TTO regularisation",
-                 "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution"}[table]  # fmt: skip
+                 "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution",
+                 "basis": "The neural basis (issue 14): default (v1) or v2, from the PBR solution",
+                 "neural_phase": "After the PBR start (issue 14): the start alone, the neural TTO at two rates",
+                 }[table]  # fmt: skip
         lines += [f"## {title}", "", "| variant | n | " + " | ".join(LABELS[m] for m in metrics) + " |",
                   "|---|---|" + "---|" * len(metrics)]
         for name in [*TABLES[table], TRUTH]:

@@ -6,6 +6,10 @@ Table 3 (TTO regularisation): (a) no TTO (the LMRM's prediction itself: steps = 
 (c) predicted uncertainty (ours), (d) oracle uncertainty.
 Starts (issue 14, not in the paper): the neural TTO from the LMRM (with and without the anchor) against the neural
 TTO from the PBR baseline's solution ("ours_pbr_start", init="pbr", tto/pbr_start.py), with and without the anchor.
+Basis (issue 14, not in the paper): the neural TTO from the PBR solution in the default basis against the same in
+basis v2 (docs/design-notes.md, item 25), with the material decoder frozen or fine-tuned (v2's latents are not the
+ones the LMRM's decoder was trained to produce). Neural phase (issue 14): what the PBR start costs and gains, the
+start alone (the PBR solution expressed in the basis, 1 neural step) and the neural TTO at a lower learning rate.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from typing import Any
 
 from neumatex_core.tto.config import TTOConfig
 
+BASIS_V2 = "nmx-basis-v2-4af9689561fa"  # materials/data/bases/v2.json
 OURS: dict[str, Any] = {"field": "triplane", "init": "lmrm", "reg": "uncertainty", "material": "neural"}
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -32,6 +37,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "t3d_oracle": {**OURS, "reg": "oracle"},
     "ours_pbr_start": {**OURS, "init": "pbr"},
     "ours_pbr_start_no_reg": {**OURS, "init": "pbr", "reg": "none"},
+    "pbr_start_v2": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2},
+    "pbr_start_v2_decoder": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "train_decoder": True},
+    "pbr_start_fit_only": {**OURS, "init": "pbr", "reg": "none", "steps": 1, "lr": 1e-9},  # the start, unmoved
+    "pbr_start_lr_005": {**OURS, "init": "pbr", "reg": "none", "lr": 0.05},
 }
 
 TABLES: dict[str, list[str]] = {
@@ -40,6 +49,8 @@ TABLES: dict[str, list[str]] = {
                "t2f_triplane_lmrm_unc"],
     "table3": ["t3a_no_tto", "t3b_no_reg", "t3c_unc", "t3d_oracle"],
     "starts": ["pbr", "t3b_no_reg", "ours", "ours_pbr_start_no_reg", "ours_pbr_start"],
+    "basis": ["pbr", "ours_pbr_start_no_reg", "pbr_start_v2", "pbr_start_v2_decoder"],
+    "neural_phase": ["pbr", "pbr_start_fit_only", "pbr_start_lr_005", "ours_pbr_start_no_reg"],
 }
 
 

@@ -174,8 +174,9 @@ def installed_bases() -> dict[str, tuple[Path, Path]]:
 
 @lru_cache(maxsize=8)
 def load_basis(device: str = "cpu", basis_id: str | None = None) -> NeuralBasis:
-    """An installed basis (cached per device and id), frozen: the default one, or the one named `basis_id`."""
-    if basis_id is None:
+    """An installed basis (cached per device and id), frozen: the default one (`basis_id` None or ""), or the one
+    named `basis_id`."""
+    if not basis_id:
         return load_basis_from(DEFAULT_WEIGHTS, DEFAULT_RECORD, device)
     bases = installed_bases()
     if basis_id not in bases:

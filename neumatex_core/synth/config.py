@@ -43,7 +43,8 @@ class SynthConfig:
     relight_maps: int = option(2, "held-out lightings per object, 17 orbital views each (relight/<j>/ captures)")
     relight_spp: int = option(16, "samples per pixel of the held-out lighting views")
     layered: bool = option(False, "also render the preset views with the analytic layered material (out of basis)")
-    workers: int = option(0, "processes (0: one per CPU); each renders whole objects with one torch thread")
+    workers: int = option(0, "processes (0: one per CPU); each renders whole objects with --threads torch threads")
+    threads: int = option(1, "torch threads per process (more than 1 only when there are fewer objects than cores)")
     shard: str = option("0/1", "I/K: make only the objects whose index mod K is I (K shards may share one --out)")
     meshes: str = option("", "shared meshes folder (default: $NEUMATEX_SHARED/data/meshes or ../shared/data/meshes)")
     envmaps: str = option("", "shared environment maps folder (default: beside --meshes' default)")
@@ -63,7 +64,7 @@ class SynthConfig:
         """ValueError naming the first bad option."""
         if self.n < 0:
             raise ValueError(f"--n must be >= 0, got {self.n}")
-        for name in ("resolution", "spp", "max_bounces", "relight_spp"):
+        for name in ("resolution", "spp", "max_bounces", "relight_spp", "threads"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(self, name)}")
         for name in ("photos", "relight_maps", "workers"):

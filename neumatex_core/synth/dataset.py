@@ -103,7 +103,7 @@ _WORKER: dict[str, Any] = {}
 def _init_worker(cfg: SynthConfig, mesh_files: list[str], envmap_files: list[str]) -> None:
     from neumatex_core.materials.neural_basis import load_basis
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(cfg.threads)
     _WORKER.update(cfg=cfg, meshes=mesh_files, envmaps=envmap_files, basis=load_basis())
 
 

@@ -12,7 +12,9 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
 - material: "neural" (ours) or "pbr" (the NVDiffRecMC++ baseline: the same loop with the LMRM's PBR head);
 - estimator: "path" (default: every step path traces its pixels) or "cached" (the light transport of `cache_pixels`
   photo pixels is cached every `cache_every` steps, `render/transport_cache.py`, and each step re-evaluates only
-  the material; cheaper steps, but it measured worse at equal time so far: docs/design-notes.md, item 22).
+  the material; cheaper steps, but it measured worse at equal time so far: docs/design-notes.md, item 22);
+- basis: "" (the default neural basis) or the id of another installed basis (materials/data/bases/; with init
+  "pbr" or "random" and reg "none", since the LMRM's latents are the default basis's: docs/design-notes.md, item 25).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
 
 from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
+from neumatex_core.materials.neural_basis import installed_bases
 
 FieldKind = Literal["triplane", "uv"]
 InitKind = Literal["lmrm", "random", "pbr"]
@@ -85,6 +88,9 @@ class TTOConfig:
     pbr_steps: int = 200
     train_decoder: bool = False
     decoder_lr: float = 0.1
+    # "" = the default neural basis; another installed basis (materials/data/bases/) by id. The LMRM predicts the
+    # default basis's latents, so another basis needs a start and an anchor that do not come from it.
+    basis: str = ""
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:
@@ -110,6 +116,11 @@ class TTOConfig:
         if self.init == "pbr" and (self.material != "neural" or self.field != "triplane"):
             raise ValueError("TTO init='pbr' starts a neural triplane from a PBR fit: it needs material='neural' and "
                              f"field='triplane', got {self.material!r} and {self.field!r}")
+        if self.basis and self.basis not in installed_bases():
+            raise ValueError(f"TTO basis={self.basis!r} is not installed (installed: {', '.join(installed_bases())})")
+        if self.basis and (self.init == "lmrm" or self.reg != "none"):
+            raise ValueError(f"TTO basis={self.basis!r}: the LMRM's latents are in the default basis, so another basis "
+                             f"needs init 'pbr' or 'random' and reg 'none', got init {self.init!r}, reg {self.reg!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

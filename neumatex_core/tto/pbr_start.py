@@ -85,13 +85,15 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
         problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
         return optimise(problem, config, progress, should_stop, checkpoint("checkpoint.pt"))
     total = config.pbr_steps + config.steps
-    pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps)
+    # The phases start from the LMRM's structure (its PBR head; its triplane, refitted below). config.basis only
+    # named the basis the caller loaded (`basis`), so the phases drop it: LMRM-shaped starts are theirs by design.
+    pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="")
     pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     pbr_progress = None if progress is None else (lambda s, _n, row: progress(s, total, {**row, "phase": 0.0}))
     first = optimise(pbr_problem, pbr_config, pbr_progress, should_stop, checkpoint("checkpoint_pbr.pt"))
     if not first.finished:
         return first
-    neural_config = replace(config, init="lmrm")
+    neural_config = replace(config, init="lmrm", basis="")
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed)
