@@ -28,9 +28,12 @@ $(SYSSTAMP): | $(STAMP)
 	fi
 	touch $(SYSSTAMP)
 
+# redis-server for the job service; chromium for the dashboard's browser test (tests/service/test_dashboard.py).
 sysdeps: $(SYSSTAMP)
 	@command -v redis-server >/dev/null || { SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q redis-server; }
+	@command -v chromium >/dev/null || { SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q chromium; }
 
 # Blender Cycles as a Python module (bpy from PyPI) in its own venv, for captures rendered by an outside
 # renderer (tools/cycles_capture.py, bench/cycles_agreement.py). bpy pins its own numpy; nothing else goes in.

@@ -61,6 +61,7 @@ class Settings(BaseSettings):
     bootstrap_api_key: str = ""
     public_url: str = "http://127.0.0.1:8000"
     cors_origins: list[str] = []
+    report_token_ttl_s: float = 900.0  # links to a job's report (POST /v1/jobs/{id}/report-token) expire after this
 
     # webhooks (services/webhooks.py): POSTed by the API process when a job ends, signed with HMAC-SHA256
     webhook_secret: str = ""  # the tenants' signing secrets derive from it (empty: <data_dir>/webhook-secret.txt)

@@ -1,0 +1,131 @@
+"""A completed job's extraction report: the very `report/index.html` and PNGs the pipeline wrote into the asset
+(neumatex_core/report.py), served file by file so the dashboard's job page can show it in a frame.
+
+Two ways in, both scoped to the job and its tenant (another tenant's job is a 404, like every id):
+- `GET /v1/jobs/{id}/report/{path}` with the API key (Authorization or X-API-Key), for programs;
+- `GET /v1/jobs/{id}/report-token/{token}/{path}` with a token minted by `POST /v1/jobs/{id}/report-token` (which
+  needs the key). A frame or an <img> cannot send an Authorization header, and the report's images are relative
+  URLs (`src='curves.png'`), so the token is a path segment: every file the page references resolves under the
+  same token. It is `base64url(job id, tenant id, expiry) . HMAC-SHA256` with a key derived from the service's
+  secret: nothing is stored, it opens only that job's report files (not the API), and it expires after
+  `REPORT_TOKEN_TTL_S`.
+
+Only files under the asset's `report/` folder are served (`..`, absolute paths, NUL and links out of it are 404).
+Every response carries a Content-Security-Policy that lets the page show its own images and inline style and
+nothing else: no scripts, no connections, no forms, no plugins, framed only by this origin, and sandboxed
+(scripts off even if the policy were ignored; `allow-same-origin` only so the dashboard can count the images the
+frame loaded). Content types are fixed per suffix (HTML as UTF-8, PNG, JSON) with `nosniff`.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+import hmac
+import time
+from datetime import UTC, datetime
+
+from fastapi import APIRouter
+from fastapi.responses import FileResponse
+from pydantic import BaseModel, Field
+
+from services import crud
+from services.core.config import get_settings
+from services.errors import ApiError, not_found
+from services.routes.assets import _asset_key
+from services.routes.deps import SessionDep, TenantDep
+from services.storage import StorageError, get_storage
+
+router = APIRouter(tags=["reports"])
+
+CSP = ("default-src 'none'; img-src 'self'; style-src 'unsafe-inline'; base-uri 'none'; form-action 'none'; "
+       "frame-ancestors 'self'; sandbox allow-same-origin")  # fmt: skip
+HEADERS = {"Content-Security-Policy": CSP, "X-Content-Type-Options": "nosniff", "Referrer-Policy": "no-referrer",
+           "Cross-Origin-Resource-Policy": "same-origin", "Cache-Control": "private, max-age=300"}  # fmt: skip
+TYPES = {".html": "text/html; charset=utf-8", ".htm": "text/html; charset=utf-8", ".png": "image/png",
+         ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".json": "application/json", ".css": "text/css; charset=utf-8",
+         ".svg": "image/svg+xml", ".txt": "text/plain; charset=utf-8"}  # fmt: skip
+
+
+class ReportToken(BaseModel):
+    token: str = Field(description="opens this job's report files only, until expires_at")
+    url: str = Field(description="the report page under the token (a path on this API)")
+    expires_at: datetime
+
+
+# -- tokens ------------------------------------------------------------------------------------------------------
+def _key() -> bytes:
+    from services.webhooks import service_secret
+
+    return hmac.new(service_secret(), b"report-token", hashlib.sha256).digest()
+
+
+def _b64(data: bytes) -> str:
+    return base64.urlsafe_b64encode(data).rstrip(b"=").decode()
+
+
+def mint(job_id: str, tenant_id: str, ttl_s: float | None = None, at: float | None = None) -> tuple[str, int]:
+    """A token for the job's report and its expiry (unix seconds)."""
+    expires = int((time.time() if at is None else at) + (get_settings().report_token_ttl_s if ttl_s is None
+                                                          else ttl_s))  # fmt: skip
+    payload = f"{job_id}\n{tenant_id}\n{expires}".encode()
+    return f"{_b64(payload)}.{_b64(hmac.new(_key(), payload, hashlib.sha256).digest())}", expires
+
+
+def check(token: str, job_id: str) -> str:
+    """The tenant id the token was minted for; 403 when it is malformed, forged, for another job or expired."""
+    bad = ApiError(403, "this report link is not valid; open the job page again for a new one")
+    body, _, sig = token.partition(".")
+    try:
+        payload = base64.urlsafe_b64decode(body + "=" * (-len(body) % 4))
+        given = base64.urlsafe_b64decode(sig + "=" * (-len(sig) % 4))
+    except (binascii.Error, ValueError):
+        raise bad from None
+    if not hmac.compare_digest(hmac.new(_key(), payload, hashlib.sha256).digest(), given):
+        raise bad
+    token_job, tenant_id, expires = payload.decode().split("\n")
+    if token_job != job_id:
+        raise ApiError(403, f"this report link is for another job, not {job_id}")
+    if time.time() > int(expires):
+        raise ApiError(403, "this report link expired; open the job page again for a new one")
+    return tenant_id
+
+
+# -- files -------------------------------------------------------------------------------------------------------
+def _report_file(s: SessionDep, tenant_id: str, job_id: str, file_path: str) -> FileResponse:
+    storage = get_storage()
+    folder = _asset_key(s, tenant_id, job_id) + "/asset/report"
+    file_path = file_path or "index.html"
+    try:
+        root, path = storage.path(folder), storage.path(f"{folder}/{file_path}")
+    except StorageError:
+        raise not_found("report file", file_path) from None
+    if not path.is_relative_to(root) or not path.is_file():  # resolved: links may not lead out of report/
+        raise not_found("report file", file_path)
+    media = TYPES.get(path.suffix.lower(), "application/octet-stream")
+    return FileResponse(path, media_type=media, headers=HEADERS)
+
+
+@router.post("/jobs/{job_id}/report-token", response_model=ReportToken,
+             summary="A short-lived link to a completed job's report (for frames and images, which send no key)")
+def report_token(job_id: str, s: SessionDep, tenant: TenantDep) -> ReportToken:
+    _asset_key(s, tenant.id, job_id)  # 404 for another tenant's job, 409/410 when there is no asset
+    token, expires = mint(job_id, tenant.id)
+    return ReportToken(token=token, url=f"/v1/jobs/{job_id}/report-token/{token}/index.html",
+                       expires_at=datetime.fromtimestamp(expires, UTC))  # fmt: skip
+
+
+@router.get("/jobs/{job_id}/report/{file_path:path}", response_class=FileResponse,
+            summary="A file of a completed job's report (index.html, its PNGs, history.json)")
+def report_file(job_id: str, file_path: str, s: SessionDep, tenant: TenantDep) -> FileResponse:
+    return _report_file(s, tenant.id, job_id, file_path)
+
+
+@router.get("/jobs/{job_id}/report-token/{token}/{file_path:path}", response_class=FileResponse,
+            summary="A file of a completed job's report, through a token from POST .../report-token")
+def report_file_by_token(job_id: str, token: str, file_path: str, s: SessionDep) -> FileResponse:
+    tenant_id = check(token, job_id)
+    if crud.job_of_tenant(s, tenant_id, job_id) is None:
+        raise not_found("job", job_id)
+    return _report_file(s, tenant_id, job_id, file_path)
