@@ -29,9 +29,9 @@ class ExtractCommandConfig:
     preset: Literal["cpu", "gpu", "tiny"] = option("cpu", "cpu: minutes on 2 cores; gpu: quality; tiny: seconds")
     work: str = option("", "folder for the stages' outputs (default: .<out name>.work beside --out); keep it to resume")
     init: Literal["auto", "lmrm", "pbr", "random"] = option(
-        "auto", "start the TTO from the LMRM's prediction (lmrm: fail without a usable LMRM checkpoint), from a PBR "
-        "fit (pbr: PBR TTO from the LMRM's PBR head first) or a random triplane; auto: lmrm when the LMRM "
-        "checkpoint loads, else random (and says so)")
+        "auto", "start the neural TTO from a PBR fit (pbr: the PBR TTO from the LMRM's PBR head first; the best "
+        "measured), from the LMRM's prediction (lmrm) or a random triplane; pbr and lmrm fail without a usable LMRM "
+        "checkpoint; auto: pbr when the LMRM checkpoint loads, else random (and says so)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
     steps: int = option(0, "TTO steps (0: the preset's)")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
@@ -61,7 +61,7 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
         torch.set_num_threads(cfg.threads)
     init = cfg.init
     if init == "auto":
-        init = "lmrm" if lmrm_available(cfg.device) else "random"
+        init = "pbr" if lmrm_available(cfg.device) else "random"
         if init == "random":
             print("note: no usable LMRM checkpoint; starting from a random triplane (--init random)", file=sys.stderr)
     config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed)
@@ -84,7 +84,7 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
         if state["stage"] != p.stage:
             if state["bar"] is not None:
                 state["bar"].close()
-            total = config.tto.steps if tto else 100
+            total = config.tto_config().total_steps() if tto else 100
             # initial: a resumed TTO starts at its checkpoint's step, so the rate and ETA count only new steps
             state["bar"] = tqdm(total=total, initial=round(p.fraction * total), desc=p.stage,
                                 unit="step" if tto else "%", file=sys.stderr)  # fmt: skip

@@ -90,18 +90,20 @@ ShouldStop = Callable[[], bool]
 
 @dataclass
 class ExtractConfig:
-    """preset_name: the preset this config came from; tto: the TTO schedule and variant; init: "lmrm" (needs the
-    shipped LMRM checkpoint, or `lmrm_weights`), "pbr" (the same, and the neural TTO starts from a PBR fit; see
-    tto/pbr_start.py) or "random"; view_resolution: size of the preset views made by
-    prepare_views (pixels); blend_k: photos blended per pixel when views are synthesised; texture_resolution: baked
-    asset textures; preview_resolution / preview_spp: preview renders; eval_photos / eval_spp: photos re-rendered at
-    export for the photo PSNR (0: none); lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the
-    shipped one; device: "auto", "cpu" or "cuda"; seed: every random draw; name: asset name (default: the capture
-    folder's)."""
+    """preset_name: the preset this config came from; tto: the TTO schedule and variant; init: "pbr" (the default: the
+    PBR baseline's TTO from the LMRM's PBR head, then the neural TTO from its solution; tto/pbr_start.py), "lmrm" (the
+    paper's start: the LMRM's triplane; both need the shipped LMRM checkpoint, or `lmrm_weights`) or "random". The
+    presets run the neural TTO without the uncertainty anchor (reg "none"): with the shipped LMRM the anchor costs
+    3-4 dB of clean PathTrace and the PBR start gains as much (docs/design-notes.md, item 26); view_resolution: size
+    of the preset views made by prepare_views (pixels); blend_k: photos blended per pixel when views are
+    synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview renders;
+    eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); lmrm_weights: an LMRM
+    .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or "cuda"; seed: every
+    random draw; name: asset name (default: the capture folder's)."""
 
     preset_name: str = "cpu"
     tto: TTOConfig = field(default_factory=TTOConfig)
-    init: Literal["lmrm", "random", "pbr"] = "lmrm"
+    init: Literal["lmrm", "random", "pbr"] = "pbr"
     view_resolution: int = 64
     blend_k: int = 3
     texture_resolution: int = 128
@@ -119,14 +121,16 @@ class ExtractConfig:
         """'tiny' (tests: seconds), 'cpu' (default: minutes on 2 cores) or 'gpu' (quality), with field overrides
         (`name=` among them: the asset's name)."""
         if name == "tiny":
-            base = cls(preset_name=name, tto=TTOConfig.preset("tiny"), view_resolution=32, texture_resolution=64,
-                       preview_resolution=32, preview_spp=2, eval_photos=1, eval_spp=2)  # fmt: skip
+            base = cls(preset_name=name, tto=TTOConfig.preset("tiny", reg="none"), view_resolution=32,
+                       texture_resolution=64, preview_resolution=32, preview_spp=2, eval_photos=1,
+                       eval_spp=2)  # fmt: skip
         elif name == "cpu":
-            base = cls(preset_name=name, tto=TTOConfig.preset("cpu"), texture_resolution=128, preview_resolution=96,
-                       preview_spp=8, eval_spp=8)  # fmt: skip
+            base = cls(preset_name=name, tto=TTOConfig.preset("cpu", reg="none"), texture_resolution=128,
+                       preview_resolution=96, preview_spp=8, eval_spp=8)  # fmt: skip
         elif name == "gpu":
-            base = cls(preset_name=name, tto=TTOConfig.preset("gpu"), view_resolution=128, texture_resolution=1024,
-                       preview_resolution=512, preview_spp=256, eval_photos=23, eval_spp=128)  # fmt: skip
+            base = cls(preset_name=name, tto=TTOConfig.preset("gpu", reg="none"), view_resolution=128,
+                       texture_resolution=1024, preview_resolution=512, preview_spp=256, eval_photos=23,
+                       eval_spp=128)  # fmt: skip
         else:
             raise ValueError(f"unknown extract preset {name!r} (expected one of {', '.join(PRESETS)})")
         return replace(base, **overrides)
@@ -137,10 +141,10 @@ class ExtractConfig:
         check_ranges(self, RANGES, "config")
         check_choices(self, "config")
         tto = self.tto_config()
-        tto.check()
-        problem = evaluation_only(tto)
+        problem = evaluation_only(tto)  # first: the reason that matters to whoever asked for it
         if problem:
             raise ValueError(problem)
+        tto.check()
 
     def tto_config(self) -> TTOConfig:
         """The TTO config with this config's init switch and seed."""

@@ -54,7 +54,7 @@ def done_times(work: Path) -> dict[str, int]:
 
 def test_stages_are_idempotent_and_resume_after_an_interruption(tmp_path, tiny_lmrm):
     work, out = tmp_path / "work", tmp_path / "asset"
-    cfg = config(tiny_lmrm)
+    cfg = config(tiny_lmrm, init="lmrm")  # one TTO phase (init "pbr" runs two: tests/test_tto.py)
     assert ExtractConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg  # what a task message carries
     metrics = run_stage("validate", EXAMPLE, work, cfg)
     assert metrics["frames"] == 23 and metrics["faces"] > 0
@@ -110,7 +110,7 @@ def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp
 
     tto = TTOConfig.preset("tiny", steps=4, pbr_steps=4, reg="none", basis=BASIS_V2)
     with pytest.raises(ValueError, match="another basis needs init 'pbr' or 'random'"):
-        config(tiny_lmrm, tto=tto).check()  # init "lmrm" by default
+        config(tiny_lmrm, init="lmrm", tto=tto).check()
     out = extract(EXAMPLE / "photos", tmp_path / "asset", config(tiny_lmrm, init="pbr", tto=tto))
     asset = read_asset(out)
     assert asset.basis.basis_id == BASIS_V2 != load_basis().basis_id

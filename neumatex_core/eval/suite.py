@@ -23,7 +23,7 @@ import subprocess
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Literal
@@ -55,8 +55,9 @@ ROW_NAMES = {
     "ours_pbr_start": "neural from the PBR solution (init pbr) + unc. reg",
     "pbr_start_v2": "neural from the PBR solution, no regulariser, basis v2 (decoder frozen)",
     "pbr_start_v2_decoder": "neural from the PBR solution, no regulariser, basis v2, decoder fine-tuned",
-    "pbr_start_fit_only": "the PBR solution expressed in the basis (1 neural step)",
-    "pbr_start_lr_005": "neural from the PBR solution, no regulariser, lr 0.05",
+    "pbr_start_1000": "neural from the PBR solution, no regulariser, 1000 neural steps",
+    "pbr_start_v2_1000": "neural from the PBR solution, no regulariser, basis v2, 1000 neural steps",
+    "pbr_1400": "PBR baseline, 1400 steps",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -71,8 +72,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
     # Latents are left out: another basis's latents are not comparable with the ground truth's
     "basis": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
               "tto_minutes"),
-    "neural_phase": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
-                     "psnr_relight_clean", "tto_minutes"),
+    "longer": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
+               "tto_minutes"),
 }
 FIGURE_VARIANTS = ("ours", "pbr")
 
@@ -200,9 +201,10 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
     runs = list(dict.fromkeys(canon.values())) + [TRUTH]
     relight = [int(v) for v in cfg.relight_views.split(",") if v.strip()]
     config = ExtractConfig.preset(cfg.preset, device=cfg.device, lmrm_weights=cfg.lmrm_weights)
+    # Every variant sets its own field, init, reg and material (eval/variants.py); the base keeps the paper's ("ours")
+    # whatever the extraction's defaults, so stored results stay comparable when those change.
+    config = replace(config, init="lmrm", tto=replace(config.tto, reg="uncertainty"))
     if cfg.steps:
-        from dataclasses import replace
-
         config = replace(config, tto=replace(config.tto, steps=cfg.steps))
     out.mkdir(parents=True, exist_ok=True)
     if not cfg.report_only:
@@ -566,7 +568,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
                  "table3": "Table 3: TTO regularisation",
                  "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution",
                  "basis": "The neural basis (issue 14): default (v1) or v2, from the PBR solution",
-                 "neural_phase": "After the PBR start (issue 14): the start alone, the neural TTO at two rates",
+                 "longer": "Longer TTO (issue 14): neural from the PBR solution vs PBR at equal steps",
                  }[table]  # fmt: skip
         lines += [f"## {title}", "", "| variant | n | " + " | ".join(LABELS[m] for m in metrics) + " |",
                   "|---|---|" + "---|" * len(metrics)]

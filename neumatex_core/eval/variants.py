@@ -8,8 +8,8 @@ Starts (issue 14, not in the paper): the neural TTO from the LMRM (with and with
 TTO from the PBR baseline's solution ("ours_pbr_start", init="pbr", tto/pbr_start.py), with and without the anchor.
 Basis (issue 14, not in the paper): the neural TTO from the PBR solution in the default basis against the same in
 basis v2 (docs/design-notes.md, item 25), with the material decoder frozen or fine-tuned (v2's latents are not the
-ones the LMRM's decoder was trained to produce). Neural phase (issue 14): what the PBR start costs and gains, the
-start alone (the PBR solution expressed in the basis, 1 neural step) and the neural TTO at a lower learning rate.
+ones the LMRM's decoder was trained to produce). Longer (issue 14): the same at 1000 neural steps (after 200 PBR
+steps) against the PBR baseline at 1400 steps (equal steps).
 """
 
 from __future__ import annotations
@@ -39,8 +39,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "ours_pbr_start_no_reg": {**OURS, "init": "pbr", "reg": "none"},
     "pbr_start_v2": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2},
     "pbr_start_v2_decoder": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "train_decoder": True},
-    "pbr_start_fit_only": {**OURS, "init": "pbr", "reg": "none", "steps": 1, "lr": 1e-9},  # the start, unmoved
-    "pbr_start_lr_005": {**OURS, "init": "pbr", "reg": "none", "lr": 0.05},
+    "pbr_start_1000": {**OURS, "init": "pbr", "reg": "none", "steps": 1000},
+    "pbr_start_v2_1000": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "steps": 1000},
+    "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
 TABLES: dict[str, list[str]] = {
@@ -50,7 +51,7 @@ TABLES: dict[str, list[str]] = {
     "table3": ["t3a_no_tto", "t3b_no_reg", "t3c_unc", "t3d_oracle"],
     "starts": ["pbr", "t3b_no_reg", "ours", "ours_pbr_start_no_reg", "ours_pbr_start"],
     "basis": ["pbr", "ours_pbr_start_no_reg", "pbr_start_v2", "pbr_start_v2_decoder"],
-    "neural_phase": ["pbr", "pbr_start_fit_only", "pbr_start_lr_005", "ours_pbr_start_no_reg"],
+    "longer": ["pbr", "pbr_1400", "ours_pbr_start_no_reg", "pbr_start_1000", "pbr_start_v2_1000"],
 }
 
 

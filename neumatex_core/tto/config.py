@@ -39,7 +39,8 @@ RANGES: dict[str, Range] = {
     "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
-    "pbr_steps": Range(1, 100_000), "decoder_lr": Range(0, 100, lo_open=True)}  # fmt: skip
+    "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000),
+    "decoder_lr": Range(0, 100, lo_open=True)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,10 @@ class TTOConfig:
     cache_directions: int = 32
     cache_every: int = 10
     pbr_steps: int = 200
+    # Adam steps fitting the neural triplane to the PBR solution (tto/pbr_start.py). Measured on benchmark object 0
+    # (bench/pbr_start.py, clean PathTrace, PBR solution 30.0 dB): 300 steps 26.9 dB, 1500 steps 29.0 dB (14 s),
+    # the per-point conversion without the triplane 29.2 dB (docs/design-notes.md, item 26)
+    pbr_fit_steps: int = 1500
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # "" = the default neural basis; another installed basis (materials/data/bases/) by id. The LMRM predicts the
@@ -98,7 +103,7 @@ class TTOConfig:
         if name == "tiny":
             base = cls(steps=12, pixels=128, spp=2, max_bounces=1, lr=0.05, reg_points=256, reg_pool=4096,
                        uv_resolution=32, checkpoint_every=4, cache_pixels=512, cache_directions=8, cache_every=4,
-                       pbr_steps=6)  # fmt: skip
+                       pbr_steps=6, pbr_fit_steps=300)  # fmt: skip
         elif name == "cpu":
             base = cls()
         elif name == "gpu":
@@ -121,6 +126,10 @@ class TTOConfig:
         if self.basis and (self.init == "lmrm" or self.reg != "none"):
             raise ValueError(f"TTO basis={self.basis!r}: the LMRM's latents are in the default basis, so another basis "
                              f"needs init 'pbr' or 'random' and reg 'none', got init {self.init!r}, reg {self.reg!r}")
+
+    def total_steps(self) -> int:
+        """Adam steps of the whole TTO: with init "pbr", the PBR phase's and then the neural phase's."""
+        return self.steps + (self.pbr_steps if self.init == "pbr" else 0)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -32,7 +32,7 @@ from neumatex_core.tto.optimise import Progress, Truth, TTOResult, build_problem
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane
 
 FIT_POINTS = 1 << 15  # area samples the start is fitted on
-FIT_STEPS = 300
+FIT_STEPS = 1500  # the default of TTOConfig.pbr_fit_steps
 FIT_LR = 0.05
 
 
@@ -84,7 +84,7 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     if config.init != "pbr":
         problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
         return optimise(problem, config, progress, should_stop, checkpoint("checkpoint.pt"))
-    total = config.pbr_steps + config.steps
+    total = config.total_steps()
     # The phases start from the LMRM's structure (its PBR head; its triplane, refitted below). config.basis only
     # named the basis the caller loaded (`basis`), so the phases drop it: LMRM-shaped starts are theirs by design.
     pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="")
@@ -96,7 +96,7 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     neural_config = replace(config, init="lmrm", basis="")
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
-    start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed)
+    start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps)
     neural_progress = None if progress is None else (
         lambda s, _n, row: progress(config.pbr_steps + s, total, {**row, "phase": 1.0}))
     second = optimise(problem, neural_config, neural_progress, should_stop, checkpoint("checkpoint.pt"))
