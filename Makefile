@@ -51,12 +51,13 @@ $(CYCLES_STAMP):
 
 cycles-env: $(CYCLES_STAMP)
 
-# A real extraction (CPU preset) of the bundled example capture; rerunning resumes from out/demo/work.
-# --init auto: LMRM initialisation when the shipped LMRM checkpoint loads, else a random triplane (no anchor).
+# A real extraction (CPU preset) of the bundled example capture (examples/README.md); rerunning resumes from
+# out/demo/work. --init auto: the neural TTO from the PBR solution when the shipped LMRM checkpoint loads, else a
+# random triplane.
 demo: install
-	$(VENV)/bin/neumatex extract examples/teapot --out out/demo/teapot-asset --work out/demo/work \
-	  --preset cpu --init auto
-	@echo "demo: open out/demo/teapot-asset/report/index.html (asset package in out/demo/teapot-asset/)"
+	$(VENV)/bin/neumatex extract examples/coat-teapot --out out/demo/coat-teapot-asset --work out/demo/work \
+	  --preset cpu --init auto --threads 0
+	@echo "demo: open out/demo/coat-teapot-asset/report/index.html (asset package in out/demo/coat-teapot-asset/)"
 
 test: install sysdeps cycles-env
 	$(VENV)/bin/ruff check neumatex_core neumatex_client services workers tests bench tools

@@ -117,6 +117,6 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
     metrics = read_done(work, "export")
     tto = read_done(work, "tto")
     print(f"wrote {path} (report: {path / 'report' / 'index.html' if path.is_dir() else 'inside the zip'}); "
-          f"TTO {tto['steps']} steps in {tto['minutes']:.2f} min, photo PSNR "
+          f"TTO {config.tto_config().total_steps()} steps in {tto['minutes']:.2f} min, photo PSNR "
           f"{metrics.get('psnr_photos', float('nan')):.2f} dB")
     return 0

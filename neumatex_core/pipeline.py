@@ -126,7 +126,7 @@ class ExtractConfig:
                        eval_spp=2)  # fmt: skip
         elif name == "cpu":
             base = cls(preset_name=name, tto=TTOConfig.preset("cpu", reg="none"), texture_resolution=128,
-                       preview_resolution=96, preview_spp=8, eval_spp=8)  # fmt: skip
+                       preview_resolution=128, preview_spp=32, eval_spp=32)  # fmt: skip
         elif name == "gpu":
             base = cls(preset_name=name, tto=TTOConfig.preset("gpu", reg="none"), view_resolution=128,
                        texture_resolution=1024, preview_resolution=512, preview_spp=256, eval_photos=23,
@@ -650,13 +650,15 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                     gb_items += [(f"view {v} LMRM {c}", img)
                                  for c, img in _gbuffer_images(lmrm_gbuffer, norm.mesh, cam, unc)]  # fmt: skip
             sections["Material G-buffers (ours after TTO; the LMRM's prediction and uncertainty)"] = gb_items
-        run_line = (f"Ran: preset {config.preset_name}, {int(metrics['tto_steps'])} TTO steps, "
+        run_line = (f"Ran: preset {config.preset_name}, {tto.total_steps()} TTO steps, "
                     f"{sum(v for k, v in timings.items() if not k.endswith('_cpu_s')):.0f} s before export; "
                     f"neural {asset.metrics.get('psnr_photos', float('nan')):.2f} dB vs PBR fallback "
                     f"{asset.metrics.get('psnr_photos_pbr', float('nan')):.2f} dB on the photos.")  # fmt: skip
         notes = [run_line, f"Capture {capture}; {len(cap.frames)} photos; preset views: {provenance['views']}.",
-                 f"Start: {record['source']}; TTO {tto.steps} steps of {tto.pixels} pixels x {tto.spp} spp, "
-                 f"{tto.max_bounces} bounces; field {tto.field}, init {tto.init}, reg {tto.reg}."]  # fmt: skip
+                 f"Prediction: {record['source']}; TTO {tto.steps} steps"
+                 + (f" after {tto.pbr_steps} PBR steps" if tto.init == "pbr" else "")
+                 + f" of {tto.pixels} pixels x {tto.spp} spp, {tto.max_bounces} bounces; field {tto.field}, "
+                 f"init {tto.init}, reg {tto.reg}."]  # fmt: skip
         if not record["trained"]:
             notes.append("No trained LMRM checkpoint was available: the triplane started from random values and the "
                          "TTO ran without the uncertainty regulariser.")  # fmt: skip
