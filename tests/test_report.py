@@ -53,3 +53,23 @@ def test_report_of_a_tiny_extraction_has_no_blank_panels(tmp_path):
         pixels = np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)
         spread = int(pixels.max()) - int(pixels.min())
         assert spread > 40, f"{src} is nearly uniform (values {pixels.min()}-{pixels.max()})"
+
+
+def test_the_demo_example_is_a_clean_capture_with_preset_views_and_photos() -> None:
+    """examples/coat-teapot (what `make demo` extracts): valid, 23 preset views and random-pose photos of >= 256 px,
+    the ground-truth regions a clear coat next to a near-diffuse one (examples/README.md)."""
+    import json
+
+    from neumatex_core.capture import load_capture
+    from neumatex_core.capture.validate import validate_capture
+
+    demo = EXAMPLE.parent / "coat-teapot"
+    assert validate_capture(demo) == [] and validate_capture(demo / "photos") == []
+    cap, photos = load_capture(demo), load_capture(demo / "photos")
+    assert len(cap.frames) == 23 and len(photos.frames) >= 6
+    assert min(cap.load_image(0).shape[:2]) >= 256 and min(photos.load_image(0).shape[:2]) >= 256
+    meta = json.loads((demo / "meta.json").read_text())
+    assert meta["content"]["spp"] >= 256
+    regions = json.loads((demo / "material.json").read_text())["regions"]
+    assert {r["family"] for r in regions} == {"coated", "dusty"}
+    assert max(r["params"]["coat_weight"] for r in regions) > 0.5
