@@ -250,3 +250,18 @@ def test_init_pbr_runs_pbr_then_starts_the_neural_field_at_its_solution(example,
     assert result.history[-1]["start_mse"] < 0.01
     with pytest.raises(ValueError, match="init='pbr'"):
         replace(cfg, material="pbr").check()
+
+
+def test_reg_start_anchors_the_neural_phase_to_its_pbr_start(example, truth_prediction, tmp_path):
+    """reg="start": the neural phase is pulled towards the start it was fitted to (the PBR solution in the basis):
+    zero at its first step (the start itself), positive once the photos move it; only with init="pbr"."""
+    from neumatex_core.tto import solve
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=1.0)  # fmt: skip
+    result = solve(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                   perturbed(truth_prediction, 0.2), example.basis)  # fmt: skip
+    neural = [r["reg"] for r in result.history if r["phase"] == 1.0]
+    assert len(neural) == 4 and neural[0] == pytest.approx(0.0, abs=1e-9) and max(neural) > 0
+    with pytest.raises(ValueError, match="reg='start'"):
+        replace(cfg, init="lmrm").check()

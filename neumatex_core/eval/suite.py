@@ -58,6 +58,8 @@ ROW_NAMES = {
     "pbr_start_1000": "neural from the PBR solution, no regulariser, 1000 neural steps",
     "pbr_start_v2_1000": "neural from the PBR solution, no regulariser, basis v2, 1000 neural steps",
     "pbr_1400": "PBR baseline, 1400 steps",
+    "pbr_start_anchor_01": "neural from the PBR solution, anchored to it (lambda 0.1)",
+    "pbr_start_anchor_1": "neural from the PBR solution, anchored to it (lambda 1)",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -74,6 +76,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
               "tto_minutes"),
     "longer": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
                "tto_minutes"),
+    "start_anchor": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                     "psnr_relight_clean", "tto_minutes"),
 }
 FIGURE_VARIANTS = ("ours", "pbr")
 
@@ -569,6 +573,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
                  "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution",
                  "basis": "The neural basis (issue 14): default (v1) or v2, from the PBR solution",
                  "longer": "Longer TTO (issue 14): neural from the PBR solution vs PBR at equal steps",
+                 "start_anchor": "Anchored to the PBR start (issue 14): relighting",
                  }[table]  # fmt: skip
         lines += [f"## {title}", "", "| variant | n | " + " | ".join(LABELS[m] for m in metrics) + " |",
                   "|---|---|" + "---|" * len(metrics)]

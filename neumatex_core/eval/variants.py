@@ -9,7 +9,8 @@ TTO from the PBR baseline's solution ("ours_pbr_start", init="pbr", tto/pbr_star
 Basis (issue 14, not in the paper): the neural TTO from the PBR solution in the default basis against the same in
 basis v2 (docs/design-notes.md, item 25), with the material decoder frozen or fine-tuned (v2's latents are not the
 ones the LMRM's decoder was trained to produce). Longer (issue 14): the same at 1000 neural steps (after 200 PBR
-steps) against the PBR baseline at 1400 steps (equal steps).
+steps) against the PBR baseline at 1400 steps (equal steps). Start anchor (issue 14): the neural TTO from the PBR
+solution held near its start (reg "start", weight 1, at two strengths), for relighting.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_v2_decoder": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "train_decoder": True},
     "pbr_start_1000": {**OURS, "init": "pbr", "reg": "none", "steps": 1000},
     "pbr_start_v2_1000": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "steps": 1000},
+    "pbr_start_anchor_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1},
+    "pbr_start_anchor_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 1.0},
     "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
@@ -52,6 +55,7 @@ TABLES: dict[str, list[str]] = {
     "starts": ["pbr", "t3b_no_reg", "ours", "ours_pbr_start_no_reg", "ours_pbr_start"],
     "basis": ["pbr", "ours_pbr_start_no_reg", "pbr_start_v2", "pbr_start_v2_decoder"],
     "longer": ["pbr", "pbr_1400", "ours_pbr_start_no_reg", "pbr_start_1000", "pbr_start_v2_1000"],
+    "start_anchor": ["pbr", "ours_pbr_start_no_reg", "pbr_start_anchor_01", "pbr_start_anchor_1"],
 }
 
 

@@ -7,8 +7,9 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
 - init: "lmrm" (the LMRM's triplane), "random" (a random triplane, same frozen decoders; ablation) or "pbr" (first
   `pbr_steps` steps of the PBR baseline's TTO from the LMRM's PBR head, then the neural triplane starts from that
   PBR solution expressed in the basis, `tto/pbr_start.py`; neural triplane only);
-- reg: "uncertainty" (ours: weights exp(-log_var) of the LMRM), "none", or "oracle" (weights 1 / squared error of
-  the LMRM G-buffers against ground truth; needs a synthetic object's ground truth);
+- reg: "uncertainty" (ours: weights exp(-log_var) of the LMRM), "none", "oracle" (weights 1 / squared error of
+  the LMRM G-buffers against ground truth; needs a synthetic object's ground truth) or "start" (init "pbr" only:
+  weight 1 towards the neural start, i.e. the PBR solution expressed in the basis);
 - material: "neural" (ours) or "pbr" (the NVDiffRecMC++ baseline: the same loop with the LMRM's PBR head);
 - estimator: "path" (default: every step path traces its pixels) or "cached" (the light transport of `cache_pixels`
   photo pixels is cached every `cache_every` steps, `render/transport_cache.py`, and each step re-evaluates only
@@ -27,7 +28,7 @@ from neumatex_core.materials.neural_basis import installed_bases
 
 FieldKind = Literal["triplane", "uv"]
 InitKind = Literal["lmrm", "random", "pbr"]
-RegKind = Literal["uncertainty", "none", "oracle"]
+RegKind = Literal["uncertainty", "none", "oracle", "start"]
 MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
 PRESETS = ("tiny", "cpu", "gpu")
@@ -123,9 +124,12 @@ class TTOConfig:
                              f"field='triplane', got {self.material!r} and {self.field!r}")
         if self.basis and self.basis not in installed_bases():
             raise ValueError(f"TTO basis={self.basis!r} is not installed (installed: {', '.join(installed_bases())})")
-        if self.basis and (self.init == "lmrm" or self.reg != "none"):
+        if self.reg == "start" and self.init != "pbr":
+            raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")
+        if self.basis and (self.init == "lmrm" or self.reg not in ("none", "start")):
             raise ValueError(f"TTO basis={self.basis!r}: the LMRM's latents are in the default basis, so another basis "
-                             f"needs init 'pbr' or 'random' and reg 'none', got init {self.init!r}, reg {self.reg!r}")
+                             f"needs init 'pbr' or 'random' and reg 'none' or 'start', got init {self.init!r}, "
+                             f"reg {self.reg!r}")
 
     def total_steps(self) -> int:
         """Adam steps of the whole TTO: with init "pbr", the PBR phase's and then the neural phase's."""

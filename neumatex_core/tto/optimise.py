@@ -93,7 +93,7 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
     (then config.reg must be "none"); `truth`: ground-truth G-buffers, needed by reg="oracle"."""
     config.check()
     device = photos.device
-    if config.reg != "none" and not anchor_available:
+    if config.reg in ("uncertainty", "oracle") and not anchor_available:
         raise ValueError(f"TTO reg={config.reg!r} anchors to the LMRM's prediction, but there is none (no trained "
                          "LMRM): use reg='none'")  # fmt: skip
     if config.reg == "oracle" and (truth is None or config.material != "neural"):
@@ -136,7 +136,7 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
     else:
         params = PBRTriplane(start, _decoder_copy(anchor_pred.pbr_decoder, config))
     anchor = None
-    if config.reg != "none" and config.lambda_reg > 0:
+    if config.reg in ("uncertainty", "oracle") and config.lambda_reg > 0:  # "start": tto/pbr_start.py
         points, uv = scene_mesh.sample_surface(config.reg_pool, seed=config.seed)
         points = points.to(device)
         uv = None if uv is None else uv.to(device)

@@ -28,6 +28,7 @@ from neumatex_core.materials.neural_basis import NeuralBasis
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural
 from neumatex_core.tto.config import TTOConfig
 from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.loss import Anchor
 from neumatex_core.tto.optimise import Progress, Truth, TTOResult, build_problem, optimise
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane
 
@@ -93,10 +94,17 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     first = optimise(pbr_problem, pbr_config, pbr_progress, should_stop, checkpoint("checkpoint_pbr.pt"))
     if not first.finished:
         return first
-    neural_config = replace(config, init="lmrm", basis="")
+    # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
+    neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg)
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps)
+    if config.reg == "start" and config.lambda_reg > 0:  # weight 1 towards the start's own G-buffers
+        points, uv = problem.mesh.sample_surface(config.reg_pool, seed=config.seed)
+        points = points.to(problem.params.tensor.device)
+        with torch.no_grad():
+            target = problem.params.gbuffer(points, None)
+        problem.anchor = Anchor(points, None if uv is None else uv.to(points.device), target, torch.ones_like(target))
     neural_progress = None if progress is None else (
         lambda s, _n, row: progress(config.pbr_steps + s, total, {**row, "phase": 1.0}))
     second = optimise(problem, neural_config, neural_progress, should_stop, checkpoint("checkpoint.pt"))
