@@ -62,6 +62,8 @@ class Settings(BaseSettings):
     public_url: str = "http://127.0.0.1:8000"
     cors_origins: list[str] = []
     report_token_ttl_s: float = 900.0  # links to a job's report (POST /v1/jobs/{id}/report-token) expire after this
+    session_ttl_s: float = 12 * 3600.0  # the dashboard's login (a signed HttpOnly cookie) lasts this long
+    session_cookie_secure: bool | None = None  # the cookie's Secure flag; None: when public_url is https
 
     # webhooks (services/webhooks.py): POSTed by the API process when a job ends, signed with HMAC-SHA256
     webhook_secret: str = ""  # the tenants' signing secrets derive from it (empty: <data_dir>/webhook-secret.txt)

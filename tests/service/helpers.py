@@ -108,3 +108,17 @@ def sse_events(service: Service, job_id: str, key: str = KEY_A, timeout: float =
                     break
                 kind, ident = None, None
     return events
+
+
+def blank_masks(source: Path = EXAMPLE) -> dict[str, bytes]:
+    """The capture's masks (relative path -> PNG bytes) all zero: a capture that passes the upload's validation but
+    whose job fails in its TTO stage ("the mesh covers no pixel of any photo")."""
+    import numpy as np
+    from PIL import Image
+
+    out: dict[str, bytes] = {}
+    for p in sorted((source / "masks").glob("*.png")):
+        buf = io.BytesIO()
+        Image.fromarray(np.zeros_like(np.asarray(Image.open(p)))).save(buf, format="PNG")
+        out[p.relative_to(source).as_posix()] = buf.getvalue()
+    return out

@@ -1,9 +1,10 @@
 """The Python client (neumatex_client) and `neumatex submit | jobs | job` against the real service, and webhooks: the
 client uploads the example capture in chunks, submits a tiny job, follows it to the end and downloads its asset;
-`neumatex submit --wait --out` on a batch of two captures gives two asset zips and exit 0; a bad key is a clear
-error and exit 3; a webhook receiver in the test gets one signed POST per terminal job (completed, canceled), the
-first answered 500 and retried; the client's own retries with backoff honour Retry-After; the client's models
-match the app's OpenAPI schema."""
+`neumatex submit DIR --wait --out` on a batch of three captures, one of which fails in its job, gives two asset
+zips, one error line naming the failed capture and its problem, exit 1, and a signed webhook per job (the first
+answered 500, then delivered after the backoff); a bad key is a clear error and exit 3; a webhook receiver in the
+test gets one signed POST per terminal job (completed, canceled), the first answered 500 and retried; the client's
+own retries with backoff honour Retry-After; the client's models match the app's OpenAPI schema."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import threading
 import time
 import zipfile
 from collections.abc import Iterator
+from datetime import datetime
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
@@ -27,7 +29,7 @@ from neumatex_client.client import _capture_files
 from neumatex_client.models import SCHEMA_NAMES
 from services.cluster import REPO, Proc, wait_for
 
-from .helpers import EXAMPLE, KEY_A, TINY, Service
+from .helpers import EXAMPLE, KEY_A, TINY, Service, blank_masks
 
 
 class Receiver(ThreadingHTTPServer):
@@ -147,27 +149,60 @@ def _run_cli(*args: str, key: str | None = KEY_A, timeout: float = 240,
 
 
 def test_cli_submit_batch_wait_out(service: Service, worker: Proc, receiver: Receiver, tmp_path: Path) -> None:
+    """Three captures in one `neumatex submit DIR --wait --out`, one broken in a way only its job finds (masks all
+    zero: it uploads, then its TTO fails): two asset zips, one error line naming that capture and the problem, exit
+    1 (the documented "a job failed; the others still ran"), and a signed webhook for each of the three, the first
+    answered 500 and delivered on a later try after the backoff."""
     batch = tmp_path / "batch"
-    for name in ("pot-a", "pot-b"):
+    for name in ("pot-a", "pot-b", "pot-c"):
         shutil.copytree(EXAMPLE, batch / name, ignore=shutil.ignore_patterns("photos", "gbuffers"))
+    for rel, data in blank_masks().items():
+        (batch / "pot-c" / rel).write_bytes(data)
+    receiver.fail_first.add("/batch")  # the receiver fails the batch's first delivery
     out = tmp_path / "assets"
+    t0 = time.monotonic()
     r = _run_cli("submit", str(batch), "--preset", "tiny", "--config", json.dumps(TINY), "--wait", "--out",
                  str(out), "--url", service.url, "--webhook", receiver.url + "/batch", "--timeout", "200",
                  module="neumatex_core.cli")
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert "pot-a: job_" in r.stderr and "pot-b: job_" in r.stderr and "100%" in r.stderr  # a bar per job
+    print(f"submit of 3 captures: {time.monotonic() - t0:.1f} s")
+    assert r.returncode == 1, r.stdout + r.stderr  # EXIT_FAILED: some failed, the others still ran
+    assert "Traceback" not in r.stderr
+    assert all(f"{n}: job_" in r.stderr for n in ("pot-a", "pot-b", "pot-c")) and "100%" in r.stderr  # bars
     zips = sorted(out.glob("*.zip"))
     assert [z.name for z in zips] == ["pot-a.zip", "pot-b.zip"], r.stdout
     for z in zips:
         with zipfile.ZipFile(z) as f:
             assert "manifest.json" in f.namelist()
     lines = [line.split("\t") for line in r.stdout.strip().splitlines()]
-    assert [(ln[0], ln[2].split(" ")[0]) for ln in lines] == [("pot-a", "completed"), ("pot-b", "completed")]
-    ids = {ln[1] for ln in lines}
+    assert [(ln[0], ln[2].split(" ")[0]) for ln in lines] == [("pot-a", "completed"), ("pot-b", "completed"),
+                                                               ("pot-c", "failed")], r.stdout  # fmt: skip
+    ids = {ln[1] for ln in lines if ln[0] != "pot-c"}
+    failed_id = lines[2][1]
+    # one line names the broken capture, its job and the problem in the pipeline's words; then the count
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error: ")]
+    assert errors == [f"error: pot-c ({failed_id}) failed: stage tto: the mesh covers no pixel of any photo",
+                      "error: 1 of 3 captures did not give an asset"], r.stderr  # fmt: skip
     with Client(service.url, KEY_A) as c:
         secret = c.webhook_secret()
-    wait_for(lambda: len(receiver.ok("/batch")) == 2, 20, "the batch's webhooks")
-    assert {_check_signed(p, secret)["job_id"] for p in receiver.ok("/batch")} == ids
+        wait_for(lambda: len(receiver.ok("/batch")) == 3, 30, "the batch's webhooks")
+        bodies = {(b := _check_signed(p, secret))["job_id"]: b for p in receiver.ok("/batch")}
+        assert set(bodies) == ids | {failed_id}
+        assert {bodies[i]["event"] for i in ids} == {"job.completed"}
+        failed = bodies[failed_id]
+        assert failed["event"] == "job.failed" and failed["state"] == "failed" and failed["asset_url"] is None
+        assert "covers no pixel" in failed["error"]
+        # the first delivery got the 500 and was sent again after the backoff (WEBHOOK_BACKOFF_S 0.5 s)
+        statuses = [p["status"] for p in receiver.posts if p["path"] == "/batch"]
+        assert statuses.count(500) == 1 and statuses.count(200) == 3, statuses
+        flaky_id = json.loads(next(p["body"] for p in receiver.posts if p["path"] == "/batch"))["job_id"]
+        (d,) = wait_for(lambda: [w for w in c.get_job(flaky_id).webhooks if w.status == "delivered"], 10,
+                        "the retried delivery recorded")  # fmt: skip
+        assert d.attempts == 2 and [a.status_code for a in d.log] == [500, 200], d.log
+        gap = (datetime.fromisoformat(str(d.log[1].at)) - datetime.fromisoformat(str(d.log[0].at))).total_seconds()
+        assert gap >= 0.45, gap  # backed off before trying again
+        for other in (ids | {failed_id}) - {flaky_id}:
+            (w,) = c.get_job(other).webhooks
+            assert w.status == "delivered" and w.attempts == 1
 
     # jobs / job: exit 0 and the job named
     listed = _run_cli("jobs", "--url", service.url, "--state", "completed")
