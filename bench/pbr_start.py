@@ -1,13 +1,14 @@
 """How far the neural TTO's start (init="pbr") is from the PBR solution it starts from, in clean PathTrace PSNR.
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/pbr_start.py [--objects test-000000,test-000001]
-        [--fit-steps 300,1500] [--basis ID] [--threads 2]
+        [--fit-steps 300,1500] [--bsdf-steps 0,300] [--basis ID] [--threads 2]
 
 Per benchmark object with references (`neumatex references`): the PBR baseline's TTO (`pbr_steps` steps of the cpu
 preset from the LMRM's PBR head, as tto/pbr_start.py runs it) is the reference, scored clean on orbital views 0, 4,
 8, 12, 16 (eval/references.py); then the same solution expressed in the neural basis per point
 (materials/pbr_to_neural.py: the basis's share of the loss) and the neural triplane fitted to it through the frozen
-material decoder at each --fit-steps (tto/pbr_start.py `fit_planes`: the triplane's share). Prints each as dB
+material decoder at each --fit-steps (tto/pbr_start.py `fit_planes`: the triplane's share), each then refined in
+BSDF space for each --bsdf-steps (`refine_to_pbr_bsdf`: what the encoder's conversion loses). Prints each as dB
 against the PBR solution and appends a JSON line to bench/results/pbr_start.jsonl. Needs the LMRM prediction of
 each object: it runs the pipeline's validate / prepare_views / lmrm stages into --work (resumable).
 """
@@ -38,7 +39,7 @@ from neumatex_core.tto.config import TTOConfig  # noqa: E402
 from neumatex_core.tto.data import PhotoSet  # noqa: E402
 from neumatex_core.tto.optimise import build_problem, optimise  # noqa: E402
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane  # noqa: E402
-from neumatex_core.tto.pbr_start import FIT_POINTS, fit_planes  # noqa: E402
+from neumatex_core.tto.pbr_start import FIT_POINTS, fit_planes, refine_to_pbr_bsdf  # noqa: E402
 
 VIEWS = (0, 4, 8, 12, 16)
 SPP_HALF = 32
@@ -56,7 +57,8 @@ class PerPointConversion(MaterialField):
         return NeuralMaterial(self.basis, rho, latent)
 
 
-def bench_object(object_dir: Path, work: Path, fit_steps: list[int], basis: NeuralBasis) -> dict[str, Any]:
+def bench_object(object_dir: Path, work: Path, fit_steps: list[int], bsdf_steps: list[int],
+                 basis: NeuralBasis) -> dict[str, Any]:
     config = ExtractConfig.preset("cpu", device="cpu")
     for stage in ("validate", "prepare_views", "lmrm"):
         run_stage(stage, object_dir, work, config)
@@ -86,12 +88,14 @@ def bench_object(object_dir: Path, work: Path, fit_steps: list[int], basis: Neur
         rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
     out["fits"] = []
     for steps in fit_steps:
-        planes = pred.triplane.planes.detach().clone().requires_grad_(True)
-        neural = NeuralTriplane(Triplane.from_planes(planes), copy.deepcopy(pred.material_decoder), basis)
-        t0 = time.perf_counter()
-        mse = fit_planes(neural, points, rho, latent, 0, steps)
-        out["fits"].append({"steps": steps, "mse": mse, "seconds": round(time.perf_counter() - t0, 1),
-                            "db": score(neural.field())})  # fmt: skip
+        for refine in bsdf_steps:
+            planes = pred.triplane.planes.detach().clone().requires_grad_(True)
+            neural = NeuralTriplane(Triplane.from_planes(planes), copy.deepcopy(pred.material_decoder), basis)
+            t0 = time.perf_counter()
+            mse = fit_planes(neural, points, rho, latent, 0, steps)
+            bsdf_loss = refine_to_pbr_bsdf(neural, basis, points, v, 0, refine) if refine else None
+            out["fits"].append({"steps": steps, "bsdf_steps": refine, "mse": mse, "bsdf_loss": bsdf_loss,
+                                "seconds": round(time.perf_counter() - t0, 1), "db": score(neural.field())})
     return out
 
 
@@ -101,18 +105,20 @@ def main() -> int:
     parser.add_argument("--objects", default="test-000000,test-000001")
     parser.add_argument("--work", default="runs/bench-pbr-start", help="pipeline work folders (LMRM predictions)")
     parser.add_argument("--fit-steps", default="300,1500")
+    parser.add_argument("--bsdf-steps", default="0,300", help="BSDF-space refinement steps after each fit")
     parser.add_argument("--basis", default="", help="an installed basis id ('': the default)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     basis = load_basis("cpu", args.basis)
     fit_steps = [int(s) for s in args.fit_steps.split(",")]
+    bsdf_steps = [int(s) for s in args.bsdf_steps.split(",")]
     rows = []
     for name in args.objects.split(","):
-        row = bench_object(Path(args.data) / name, Path(args.work) / name, fit_steps, basis)
+        row = bench_object(Path(args.data) / name, Path(args.work) / name, fit_steps, bsdf_steps, basis)
         rows.append(row)
-        fits = ", ".join(f"fit {f['steps']} steps {f['db']:.2f} dB ({f['db'] - row['pbr_db']:+.2f}, {f['seconds']} s)"
-                         for f in row["fits"])  # fmt: skip
+        fits = ", ".join(f"fit {f['steps']} + BSDF {f['bsdf_steps']} steps {f['db']:.2f} dB "
+                         f"({f['db'] - row['pbr_db']:+.2f}, {f['seconds']} s)" for f in row["fits"])
         print(f"{name}: PBR solution ({row['pbr_steps']} steps) {row['pbr_db']:.2f} dB clean; per point in the "
               f"basis {row['per_point_db']:.2f} ({row['per_point_db'] - row['pbr_db']:+.2f}); {fits}", flush=True)
     print(f"appended to {write_result('pbr_start', {'basis': basis.basis_id, 'views': list(VIEWS), 'rows': rows})}")

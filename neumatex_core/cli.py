@@ -33,6 +33,7 @@ class RenderConfig:
     mesh: str = option("", "mesh file (OBJ/PLY/GLB); normalised into the unit sphere")
     envmap: str = option("", "equirectangular HDR environment map (EXR/HDR)")
     capture: str = option("", "render a capture (folder or zip): its mesh, envmap, cameras and tonemap")
+    allow_outside_paths: bool = option(False, "the capture folder's transforms.json may name files outside it")
     out: str = option("out/render", "output folder")
     views: str = option("all", "preset views: all (23), orbit (17), canonical (6) or indices like 0,5,9")
     resolution: int = option(256, "image size of the preset views (pixels)")
@@ -88,7 +89,10 @@ def run_render(cfg: RenderConfig) -> int:
 
         asset = read_asset(cfg.asset, device=device)
     if cfg.capture:
-        capture = load_capture(cfg.capture)
+        from neumatex_core.capture.loader import allow_outside_paths
+
+        with allow_outside_paths(cfg.allow_outside_paths):
+            capture = load_capture(cfg.capture)
         envmap_path = cfg.envmap or capture.envmap_path
         to_world, scale = (None, 1.0) if cfg.envmap else (capture.envmap_to_world, capture.envmap_scale)
         envmap = EnvironmentMap.from_file(envmap_path, to_world, scale, device)
@@ -229,6 +233,31 @@ def run_export(cfg: ExportConfig) -> int:
     return 0
 
 
+@dataclass
+class ViewConfig:
+    """`neumatex view`: look at an asset's neural material in the browser (WebGL2, the basis MLP in the shader), lit
+    by environment maps, with orbit controls and a switch to the PBR fallback (docs/viewer.md)."""
+
+    asset: str = option("", "material asset package (folder or .zip)", positional=True)
+    envmap: str = option("", "equirectangular HDR map to light it with (EXR/HDR); the shared maps are offered too")
+    shared_envmaps: str = option("", "folder of further maps for the menu (default: $NEUMATEX_SHARED/data/envmaps)")
+    port: int = option(8765, "localhost port of the page (0: any free port)")
+    browser: bool = option(True, "open the page in the default browser (--no-browser: only serve it)")
+    env_height: int = option(256, "height of the maps the page gets (box-downsampled; width twice this)")
+
+
+def run_view_command(cfg: ViewConfig) -> int:
+    import os
+
+    from neumatex_core.viewer.serve import run_view
+
+    if not cfg.asset:
+        raise ValueError("give the asset to view (neumatex view ASSET [--envmap MAP.exr])")
+    shared = cfg.shared_envmaps or (str(Path(os.environ["NEUMATEX_SHARED"]) / "data" / "envmaps")
+                                    if os.environ.get("NEUMATEX_SHARED") else "")  # fmt: skip
+    return run_view(cfg.asset, cfg.envmap, shared, cfg.port, cfg.browser, cfg.env_height)
+
+
 @contextmanager
 def _object_bar(desc: str, show: bool) -> Iterator[Callable[[int, int, dict[str, Any] | None], None]]:
     """A per-object progress bar; yields the callback `progress(done, total, record)` that the split commands
@@ -301,6 +330,7 @@ def run_train_lmrm(cfg: TrainLMRMConfig) -> int:
 COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
     "render": (RenderConfig, run_render),
     "export": (ExportConfig, run_export),
+    "view": (ViewConfig, run_view_command),
     "train-basis": (TrainBasisConfig, run_train_basis),
     "gallery": (GalleryConfig, run_gallery),
     "synth": (SynthConfig, run_synth),
@@ -336,6 +366,14 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     p_validate = sub.add_parser("validate", help="check a capture folder or zip; lists every problem")
     p_validate.add_argument("capture", help="capture folder, transforms.json or .zip")
+    p_validate.add_argument("--allow-outside-paths", action="store_true", help="a capture folder's transforms.json "
+                            "may name files outside it (e.g. ../mesh.obj shared by relit captures; never for zips)")
+    from neumatex_core.capture.colmap import ImportColmapConfig, run_import_colmap
+
+    p_import = sub.add_parser("import", help="turn another tool's cameras into a capture (import colmap ...)")
+    import_sub = p_import.add_subparsers(dest="import_format", required=True)
+    add_config_arguments(import_sub.add_parser("colmap", help=(ImportColmapConfig.__doc__ or "").split("\n")[0],
+                                               description=ImportColmapConfig.__doc__), ImportColmapConfig)
     p_serve = sub.add_parser("serve", help="the job service on this machine: redis-server, the API and one worker "
                              "(python -m services serve; prints the dashboard URL)")  # fmt: skip
     p_serve.add_argument("args", nargs=argparse.REMAINDER, help="passed on to `python -m services serve`")
@@ -360,7 +398,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "validate":
             from neumatex_core.capture import run_validate
 
-            return run_validate(args.capture)
+            return run_validate(args.capture, args.allow_outside_paths)
+        if args.command == "import":
+            return run_import_colmap(config_from_args(ImportColmapConfig, args))
         cls, run = COMMANDS[args.command]
         return run(config_from_args(cls, args))
     # our errors (MeshError, EnvmapError, CaptureError, ...) are ValueErrors; RecursionError: absurdly nested input

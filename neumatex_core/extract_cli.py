@@ -34,9 +34,14 @@ class ExtractCommandConfig:
         "checkpoint; auto: pbr when the LMRM checkpoint loads, else random (and says so)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
     steps: int = option(0, "TTO steps (0: the preset's)")
+    photo_exposure: bool = option(False, "fit each photo's exposure in TTO (hand-held photos; docs/capture-format.md)")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
     seed: int = option(0, "random seed")
     progress: bool = option(True, "show a progress bar")
+    compare_pbr: bool = option(False, "also run the PBR baseline's TTO (eval variant 'pbr', as many steps) and write "
+                               "its photo PSNR beside the neural one in the asset's metrics and report")
+    allow_outside_paths: bool = option(False, "the capture folder's transforms.json may name files outside it (e.g. "
+                                       "../mesh.obj shared by several captures; never for zips or uploads)")
 
 
 def lmrm_available(device: str = "auto") -> bool:
@@ -57,6 +62,8 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
 
     if not cfg.capture or not cfg.out:
         raise ValueError("give the capture and the output: neumatex extract CAPTURE --out ASSET")
+    if cfg.compare_pbr and Path(cfg.out).suffix.lower() == ".zip":
+        raise ValueError("--compare-pbr writes its scores into an asset folder: give --out a folder, not a .zip")
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     init = cfg.init
@@ -65,8 +72,9 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
         if init == "random":
             print("note: no usable LMRM checkpoint; starting from a random triplane (--init random)", file=sys.stderr)
     config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed)
-    if cfg.steps:
-        config = replace(config, tto=replace(config.tto, steps=cfg.steps))
+    if cfg.steps or cfg.photo_exposure:
+        config = replace(config, tto=replace(config.tto, steps=cfg.steps or config.tto.steps,
+                                             photo_exposure=cfg.photo_exposure))
     out = Path(cfg.out)
     work = Path(cfg.work) if cfg.work else default_work(out)
     state: dict[str, Any] = {"stop": False, "bar": None, "stage": None}
@@ -96,9 +104,12 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
         else:
             bar.set_postfix_str(p.message[:60])
 
+    from neumatex_core.capture.loader import allow_outside_paths
+
     previous = signal.signal(signal.SIGINT, on_sigint)
     try:
-        path = extract(Path(cfg.capture), out, config, progress, lambda: bool(state["stop"]), work)
+        with allow_outside_paths(cfg.allow_outside_paths):
+            path = extract(Path(cfg.capture), out, config, progress, lambda: bool(state["stop"]), work)
     except Cancelled as exc:
         print(f"stopped: {exc}. Finished stages are in {work}; rerun the same command to resume.", file=sys.stderr)
         return 130
@@ -115,6 +126,18 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
     from neumatex_core.pipeline import read_done
 
     metrics = read_done(work, "export")
+    if cfg.compare_pbr:
+        from neumatex_core.compare_pbr import compare_pbr
+
+        print("running the PBR baseline's TTO (--compare-pbr) ...", file=sys.stderr)
+        try:
+            with allow_outside_paths(cfg.allow_outside_paths):
+                added = compare_pbr(Path(cfg.capture), path, work, config)
+        except PipelineError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(f"PBR baseline TTO ({int(added['pbr_baseline_steps'])} steps): photo PSNR "
+              f"{added['psnr_photos_pbr_baseline']:.2f} dB (neural {metrics.get('psnr_photos', float('nan')):.2f} dB)")
     tto = read_done(work, "tto")
     print(f"wrote {path} (report: {path / 'report' / 'index.html' if path.is_dir() else 'inside the zip'}); "
           f"TTO {config.tto_config().total_steps()} steps in {tto['minutes']:.2f} min, photo PSNR "

@@ -1,7 +1,8 @@
 """Image files through OpenImageIO: PNG, JPEG, EXR, HDR, TIFF; 8/16-bit integer and float.
 
 Pixels come back as float32 [H, W, C]: integer formats normalised to [0, 1] (still in the file's encoding,
-e.g. sRGB for a photo), float formats as stored (linear HDR for EXR/HDR).
+e.g. sRGB for a photo), float formats as stored (linear HDR for EXR/HDR), turned upright by the file's EXIF
+Orientation tag (a phone's JPEG stored sideways loads as it is displayed; what PIL's ImageOps.exif_transpose does).
 """
 
 from __future__ import annotations
@@ -16,8 +17,24 @@ class ImageError(ValueError):
     """An image file that cannot be used; the message names the file and the reason."""
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read an image as float32 [H, W, C]. Raises ImageError naming the file when it cannot be read."""
+def orient(pixels: np.ndarray, orientation: int) -> np.ndarray:
+    """[H, W, C] pixels as stored -> as displayed, for an EXIF Orientation value (1-8; others: unchanged)."""
+    transforms = {
+        2: lambda a: a[:, ::-1],  # mirrored left-right
+        3: lambda a: a[::-1, ::-1],  # rotated 180
+        4: lambda a: a[::-1],  # mirrored top-bottom
+        5: lambda a: a.transpose(1, 0, 2),  # transposed
+        6: lambda a: np.rot90(a, -1),  # stored rotated 90 counter-clockwise: turn it 90 clockwise
+        7: lambda a: a.transpose(1, 0, 2)[::-1, ::-1],  # transverse
+        8: lambda a: np.rot90(a, 1),  # stored rotated 90 clockwise: turn it 90 counter-clockwise
+    }
+    fn = transforms.get(int(orientation))
+    return pixels if fn is None else np.ascontiguousarray(fn(pixels))
+
+
+def read_image(path: str | Path, orient_upright: bool = True) -> np.ndarray:
+    """Read an image as float32 [H, W, C], upright by its EXIF Orientation unless `orient_upright` is false (the
+    pixels as stored). Raises ImageError naming the file when it cannot be read."""
     import OpenImageIO as oiio
 
     path = Path(path)
@@ -28,6 +45,7 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ImageError(f"{path}: cannot be read as an image ({oiio.geterror() or 'unknown format'})")
     try:
         spec = inp.spec()
+        orientation = int(spec.get_int_attribute("Orientation", 1))
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
         err = inp.geterror()
     finally:
@@ -37,7 +55,7 @@ def read_image(path: str | Path) -> np.ndarray:
     arr = np.asarray(pixels, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[:, :, None]
-    return arr
+    return orient(arr, orientation) if orient_upright else arr
 
 
 def is_float_image(path: str | Path) -> bool:
@@ -53,7 +71,7 @@ def is_float_image(path: str | Path) -> bool:
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) from the file header, without reading pixels."""
+    """(width, height) from the file header, without reading pixels; upright (EXIF Orientation), like read_image."""
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))
@@ -61,6 +79,8 @@ def image_size(path: str | Path) -> tuple[int, int]:
         raise ImageError(f"{path}: cannot be read as an image ({oiio.geterror() or 'unknown format'})")
     spec = inp.spec()
     inp.close()
+    if int(spec.get_int_attribute("Orientation", 1)) in (5, 6, 7, 8):
+        return int(spec.height), int(spec.width)
     return int(spec.width), int(spec.height)
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 import math
 import os
 import shutil
@@ -267,19 +268,9 @@ def _display_tonemap(tonemap: Tonemap) -> Tonemap:
 
 def _preset_frames(cameras: list[Camera]) -> list[int] | None:
     """Frame index of each of the 23 preset views, if the capture has them all (any square resolution)."""
-    found = []
-    for k in range(23):
-        match = None
-        for i, cam in enumerate(cameras):
-            preset = preset_views(cam.width)[k] if cam.width == cam.height else None
-            if preset is not None and np.abs(np.asarray(cam.c2w) - preset.c2w).max() < PRESET_TOLERANCE and \
-                    abs(cam.fl_x - preset.fl_x) < PRESET_TOLERANCE * preset.fl_x:
-                match = i
-                break
-        if match is None:
-            return None
-        found.append(match)
-    return found
+    from neumatex_core.novel_view.presets import match_preset_views
+
+    return match_preset_views(cameras).frames
 
 
 # -- stages ---------------------------------------------------------------------------------------------------
@@ -309,12 +300,15 @@ def _stage_prepare_views(capture: Path, work: Path, config: ExtractConfig,
         mesh = Mesh(((raw.vertices - centre) * scale).astype(np.float32), raw.faces, raw.vertex_normals, raw.uvs)
         cameras = [c.normalized(centre, scale) for c in cap.cameras]
         display_tm = _display_tonemap(cap.tonemap)
-        frames = _preset_frames(cameras)
+        from neumatex_core.novel_view.presets import match_preset_views
+
+        match = match_preset_views(cameras)  # why not, when the photos look meant as preset views: said and kept
+        frames = match.frames
         if frames is not None:
             source = "the capture's preset views"
             imgs, masks = [], []
             for k, i in enumerate(frames):
-                lin = cap.tonemap.display_to_linear(cap.load_image(i))
+                lin = cap.tonemap_of(i).display_to_linear(cap.load_image(i))  # the frame's own exposure
                 imgs.append(torch.as_tensor(display_tm.apply_numpy(lin)))
                 m = cap.load_mask(i)
                 cover = render_gbuffer(mesh, cameras[i]).mask
@@ -326,9 +320,13 @@ def _stage_prepare_views(capture: Path, work: Path, config: ExtractConfig,
             resolution = int(display.shape[1])
         else:
             source = f"blended from {len(cap.frames)} photos (unstructured lumigraph)"
+            if match.aimed:
+                source += f"; {match.reason}"
+                _emit(progress, "prepare_views", 0.0, match.reason)
+                logging.getLogger("neumatex.pipeline").warning("%s: photos %s", capture, match.reason)
             photos = []
             for i in range(len(cap.frames)):
-                lin = cap.tonemap.display_to_linear(cap.load_image(i))
+                lin = cap.tonemap_of(i).display_to_linear(cap.load_image(i))  # the frame's own exposure
                 photos.append(Photo(lin.astype(np.float32), cameras[i], cap.load_mask(i)))
             resolution = config.view_resolution
             views = blend_views(mesh, photos, preset_views(resolution), k=config.blend_k,
@@ -433,7 +431,7 @@ def _photo_set(norm: _Normalised, device: torch.device) -> PhotoSet:
     cap = norm.capture
     images = [cap.load_image(i) for i in range(len(cap.frames))]
     masks = [cap.load_mask(i) for i in range(len(cap.frames))]
-    return PhotoSet(images, norm.cameras, norm.mesh, masks, device)
+    return PhotoSet(images, norm.cameras, norm.mesh, masks, device, cap.exposures)
 
 
 def evaluation_only(tto: TTOConfig) -> str:
@@ -483,11 +481,32 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
             tensors[f"decoder.{k}"] = v.detach().cpu().float().contiguous()
     save_file(tensors, str(out / "result.safetensors"))
     _write_json_atomic(out / "history.json", result.history)
+    stops = {}
+    if result.exposure is not None:  # TTOConfig.photo_exposure: the fitted multipliers, read by the export stage
+        _write_json_atomic(out / EXPOSURE_FILE, result.exposure)
+        stops = {"exposure_stops_max": max(abs(math.log2(e)) for e in result.exposure)}
     tail = result.history[-max(1, len(result.history) // 10):]
-    return {"steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),
+    return {**stops, "steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),
             "psnr_batch": float(np.mean([r["psnr"] for r in tail])), "photo_pixels": photos.size,
             "tto_s": time.perf_counter() - t0, "field": tto.field, "init": tto.init, "reg": tto.reg,
             "material": tto.material}  # fmt: skip
+
+
+EXPOSURE_FILE = "exposure.json"  # in the tto stage's folder: the fitted per-photo exposure multipliers
+
+
+def fitted_exposures(work: Path) -> list[float] | None:
+    """The per-photo exposure multipliers the TTO fitted (TTOConfig.photo_exposure; on top of the frames' given
+    exposures, geometric mean 1), or None when it fitted none."""
+    path = stage_dir(work, "tto") / EXPOSURE_FILE
+    return [float(e) for e in json.loads(path.read_text())] if path.is_file() else None
+
+
+def photo_tonemap(cap: Capture, i: int, fitted: list[float] | None = None) -> Tonemap:
+    """The tonemap photo i was taken with: the capture's, times the frame's given exposure, times the TTO's fitted
+    one when there is one (`fitted_exposures`)."""
+    tonemap = cap.tonemap_of(i)
+    return tonemap if fitted is None else replace(tonemap, exposure=tonemap.exposure * fitted[i])
 
 
 def _gbuffer_images(field_gbuffer: Callable[[torch.Tensor], torch.Tensor], mesh: Mesh, camera: Camera,
@@ -595,6 +614,7 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
         asset.centre, asset.scale = [float(c) for c in norm.centre], float(norm.scale)
         _emit(progress, "export", 0.4, "rendering previews")
         make_previews(asset, norm.envmap, config.preview_resolution, config.preview_spp, tonemap=cap.tonemap)
+        fitted = fitted_exposures(work)
         photo_items: list[tuple[str, np.ndarray]] = []
         n_eval = min(config.eval_photos, len(cap.frames))
         if n_eval:
@@ -607,7 +627,8 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
             scores, pbr_scores = [], []
             for i, img, pbr_img in zip(picks, renders, pbr_renders, strict=True):
                 photo = torch.as_tensor(cap.load_image(i))
-                shown, pbr_shown = cap.tonemap.apply(img.cpu()), cap.tonemap.apply(pbr_img.cpu())
+                tonemap = photo_tonemap(cap, i, fitted)  # the photo's own exposure (given, and fitted by TTO)
+                shown, pbr_shown = tonemap.apply(img.cpu()), tonemap.apply(pbr_img.cpu())
                 m = render_gbuffer(norm.mesh, norm.cameras[i]).mask
                 user = cap.load_mask(i)
                 if user is not None:
@@ -670,7 +691,8 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                          "TTO ran without the uncertainty regulariser.")  # fmt: skip
         report = write_report(ReportContent(f"NeuMatEx extraction: {name}", sections, history, asset.metrics,
                                             asset.timings, {"preset": config.preset_name, **tto.to_dict()}, notes,
-                                            asset.metrics.get("psnr_photos_pbr"), _report_columns(sections)),
+                                            asset.metrics.get("psnr_photos_pbr"), _report_columns(sections),
+                                            fitted),
                               target / "report")  # fmt: skip
     return {**asset.metrics, "asset": str(target), "report": str(report)}
 

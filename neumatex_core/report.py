@@ -2,7 +2,8 @@
 
 Shows the preview renders (neural field and PBR fallback), the photos next to re-renders of the result, the
 material G-buffers of preset views (base colour, latent channels 0-2 and 3-5 as (l + 1) / 2, the LMRM's
-predicted standard deviation where an LMRM was used), the loss and PSNR curves of the TTO, metrics and timings.
+predicted standard deviation where an LMRM was used), the loss and PSNR curves of the TTO, the photos' fitted
+exposures (TTOConfig.photo_exposure), metrics and timings.
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ class ReportContent:
     notes: list[str] = field(default_factory=list)
     pbr_psnr: float | None = None  # dB, the PBR fallback's PSNR on the photos: a level marked on the PSNR curve
     columns: dict[str, int] = field(default_factory=dict)  # section -> grid columns (default: fill the width)
+    # each photo's exposure multiplier fitted by the TTO (on top of its given one, geometric mean 1), or None
+    exposures: list[float] | None = None
 
 
 def _slug(text: str) -> str:
@@ -81,6 +84,11 @@ def write_report(content: ReportContent, folder: Path) -> Path:
         parts.append("<h2>TTO curves</h2><img src='curves.png'>"
                      "<p class='cap'>per step; history.json has the values; the flat line is the PBR fallback's "
                      "PSNR on the photos</p>")
+    if content.exposures is not None:
+        parts.append(f"<h2>Fitted photo exposures</h2>{_table(exposure_rows(content.exposures))}"
+                     "<p class='cap'>each photo's exposure as the TTO fitted it, in stops (log2 of the multiplier) "
+                     "relative to its given exposure; their mean is 0 by construction (the overall brightness "
+                     "belongs to the material and the known lighting)</p>")  # fmt: skip
     for name, rows in (("Metrics", content.metrics), ("Timings (seconds)", content.timings),
                        ("Settings", content.settings)):  # fmt: skip
         if rows:
@@ -96,3 +104,17 @@ def write_report(content: ReportContent, folder: Path) -> Path:
     path = folder / "index.html"
     path.write_text(page)
     return path
+
+
+def exposure_rows(exposures: Sequence[float]) -> dict[str, str]:
+    """Table rows "photo i" -> "+0.98 stops (x1.973)" of the fitted exposure multipliers (photo order)."""
+    return {f"photo {i}": f"{np.log2(e):+.2f} stops (x{e:.3f})" for i, e in enumerate(exposures)}
+
+
+def append_table(page: Path, title: str, rows: dict[str, Any], note: str = "") -> None:
+    """Add a titled table (and a note under it) at the end of an existing report page (e.g. scores computed after
+    the export stage wrote the report: `neumatex extract --compare-pbr`)."""
+    text = page.read_text()
+    block = f"<h2>{html.escape(title)}</h2>{_table(rows)}" + (f"<p class='cap'>{html.escape(note)}</p>" if note else "")
+    end = text.rfind("</body>")
+    page.write_text(text[:end] + block + text[end:] if end >= 0 else text + block)

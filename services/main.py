@@ -17,7 +17,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from services.core.config import get_settings
 from services.core.db import get_engine, session_scope
 from services.metrics import LATENCY, REQUESTS
-from services.routes import assets, captures, dashboard, health, jobs, reports, tenants
+from services.routes import assets, captures, dashboard, health, jobs, reports, tenants, viewer
 
 log = logging.getLogger("neumatex.api")
 
@@ -93,7 +93,7 @@ def create_app(reaper: bool = True) -> FastAPI:
     app = FastAPI(title="NeuMatEx job service", version="1", lifespan=lifespan,
                   description="Upload captures, run extraction jobs, stream progress, download neural material "
                   "assets. Authenticate with 'Authorization: Bearer <API key>'.")  # fmt: skip
-    for r in (captures.router, jobs.router, assets.router, reports.router, tenants.router):
+    for r in (captures.router, jobs.router, assets.router, reports.router, tenants.router, viewer.router):
         app.include_router(r, prefix="/v1")
     app.include_router(health.router)
     app.include_router(dashboard.router)

@@ -248,7 +248,8 @@ DEFECTS: dict[str, tuple[Callable[[Path], object], str, tuple[str, ...]]] = {
         ("tonemap.exposure", "greater than 0"),
     ),
     "bad transfer": (_top("tonemap", {"transfer": "gamma"}), "transforms.json", ("tonemap.transfer",)),
-    "distortion": (_top("k1", 0.1), "transforms.json", ("distortion", "k1")),
+    "distortion k4": (_top("k4", 0.1), "transforms.json", ("distortion", "k4")),  # k1 k2 k3 p1 p2: undistorted
+    "fisheye": (_top("camera_model", "OPENCV_FISHEYE"), "transforms.json", ("camera_model", "OPENCV_FISHEYE")),
     "transforms missing": (lambda r: (r / "transforms.json").unlink(), "transforms.json", ("not found",)),
     "transforms not json": (
         lambda r: (r / "transforms.json").write_text('{"frames": [,]}'),

@@ -191,6 +191,8 @@ def _write_folder(asset: MaterialAsset, root: Path) -> Manifest:
     decoders: dict[str, DecoderRecord] = {}
     if asset.triplane is not None:
         save_file(_tensors(asset), str(root / TENSORS), metadata={"format": "neumatex-material-asset"})
+        # safetensors writes through a private (0600) temporary file; give the tensors the mode of the other files
+        (root / TENSORS).chmod((root / MESH).stat().st_mode & 0o777)
         for kind, dec in asset.decoders.items():
             if kind not in DECODERS or not isinstance(dec, DECODERS[kind]):
                 raise AssetError(f"decoder {kind!r}: expected one of {sorted(DECODERS)} ({type(dec).__name__})")

@@ -9,9 +9,13 @@ otherwise. Reading the files' contents is `validate_capture`'s job (validate.py)
 from __future__ import annotations
 
 import json
+import logging
 import os
 import tempfile
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -25,6 +29,7 @@ from neumatex_core.capture.archive import (
     DEFAULT_MAX_TOTAL_BYTES,
     extract_zip,
 )
+from neumatex_core.capture.distortion import Distortion
 from neumatex_core.capture.model import Capture, CaptureError, Frame, Problem
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.camera import Camera
@@ -32,9 +37,33 @@ from neumatex_core.geometry.camera import Camera
 TRANSFORMS = "transforms.json"
 RIGID_TOLERANCE = 1e-3  # max |R^T R - I| and |det R - 1| for a rotation
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")  # tried for extension-less file_path
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")  # nerfstudio's; k4 (an r^8 radial term) has no OpenCV twin
+UNSUPPORTED_MODELS = ("FISHEYE", "EQUIRECT")  # nerfstudio camera_model values that are not a (distorted) pinhole
+TONEMAP_KEYS = ("exposure", "transfer", "oetf", "clip")  # oetf: an alias of transfer; clip: T always clips to [0, 1]
+K4_MESSAGE = ("lens distortion k4 (nerfstudio's r^8 radial term) is not supported (k1 k2 k3 p1 p2 are, as in "
+              "OpenCV); undistort the photos and set it to 0")
 MAX_FOLDER_CHAIN = 8  # single folders looked into for transforms.json
 TOO_DEEP = "has lists or objects nested too deeply to read"
+log = logging.getLogger("neumatex.capture")
+# Whether transforms.json may name files outside the capture folder (`allow_outside_paths`): never for uploads
+# or zips, only where a local user asks for it (`neumatex ... --allow-outside-paths`).
+_ALLOW_OUTSIDE: ContextVar[bool] = ContextVar("neumatex_allow_outside_paths", default=False)
+
+
+def outside_paths_allowed() -> bool:
+    """Whether an `allow_outside_paths` block is in force."""
+    return _ALLOW_OUTSIDE.get()
+
+
+@contextmanager
+def allow_outside_paths(allow: bool = True) -> Iterator[None]:
+    """Inside this block, captures loaded from a folder may name files outside it (`../mesh.obj`, absolute paths):
+    for local use, e.g. relit captures sharing one mesh. Zips and the job service's uploads never get this."""
+    token = _ALLOW_OUTSIDE.set(allow)
+    try:
+        yield
+    finally:
+        _ALLOW_OUTSIDE.reset(token)
 
 
 # ---------------------------------------------------------------------------------------------- schema
@@ -73,10 +102,11 @@ class FrameSchema(IntrinsicsSchema):
     file_path: Annotated[str, Field(min_length=1)]
     transform_matrix: Matrix4
     mask_path: Annotated[str, Field(min_length=1)] | None = None
+    exposure: PositiveFinite = 1.0  # the photo's own exposure: a multiplier on top of tonemap.exposure
 
 
 class TonemapSchema(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="allow")  # unknown keys: `_tonemap` (warned about, or refused if they conflict)
 
     exposure: PositiveFinite = 1.0
     transfer: Literal["srgb", "linear"] = "srgb"
@@ -158,6 +188,8 @@ class ParsedFrame:
     camera: Camera | None
     mask_name: str | None = None
     mask_path: Path | None = None
+    distortion: Distortion | None = None
+    exposure: float = 1.0  # the frame's own exposure multiplier (on top of the capture's tonemap exposure)
 
     @property
     def label(self) -> str:
@@ -170,6 +202,7 @@ class ParsedCapture:
 
     root: Path
     problems: list[Problem] = field(default_factory=list)
+    warnings: list[Problem] = field(default_factory=list)  # things ignored on purpose (logged by load_capture)
     schema_ok: bool = False
     frames: list[ParsedFrame] = field(default_factory=list)
     mesh_path: Path | None = None
@@ -190,7 +223,7 @@ class ParsedCapture:
         frames = []
         for f in self.frames:
             assert f.image_path is not None and f.camera is not None
-            frames.append(Frame(f.image_path, f.camera, f.mask_path))
+            frames.append(Frame(f.image_path, f.camera, f.mask_path, f.distortion, f.exposure))
         return Capture(
             root=self.root,
             frames=frames,
@@ -204,8 +237,11 @@ class ParsedCapture:
 
 
 def _resolve(root: Path, rel: str) -> Path | None:
-    """Absolute path of `rel` inside root, or None when it is absolute or escapes the capture folder."""
+    """Absolute path of `rel` inside root, or None when it is absolute or escapes the capture folder (unless
+    `allow_outside_paths` is in force)."""
     unified = rel.replace("\\", "/")
+    if _ALLOW_OUTSIDE.get():
+        return Path(os.path.normpath(root / unified))
     if unified.startswith("/") or (len(unified) >= 2 and unified[1] == ":"):
         return None
     norm = os.path.normpath(unified)
@@ -229,25 +265,57 @@ def _existing_file(
             if path.with_suffix(suffix).is_file():
                 return path.with_suffix(suffix)
     if not path.is_file():
-        problems.append(
-            Problem(
-                path.relative_to(root).as_posix(), f"{what} file not found (named by {label} in {TRANSFORMS})"
-            )
-        )
+        shown = path.relative_to(root).as_posix() if path.is_relative_to(root) else str(path)
+        problems.append(Problem(shown, f"{what} file not found (named by {label} in {TRANSFORMS})"))
         return None
+    if not path.resolve().is_relative_to(root.resolve()):
+        log.info("%s: %s %s is outside the capture folder (allowed: --allow-outside-paths)", TRANSFORMS, what, path)
     return path
 
 
-def _distortion(entry: IntrinsicsSchema) -> list[str]:
+def _distortion_values(entry: IntrinsicsSchema, where: str, problems: list[Problem]) -> dict[str, float]:
+    """The distortion coefficients `entry` gives (numbers; anything else is a problem)."""
     extra = entry.model_extra or {}
-    return [k for k in DISTORTION_KEYS if isinstance(extra.get(k), int | float) and extra[k] != 0]
+    out = {}
+    for k in DISTORTION_KEYS:
+        if k not in extra or extra[k] is None:
+            continue
+        v = extra[k]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
+            problems.append(Problem(TRANSFORMS, f"{where}{k}: must be a finite number, got {v!r}"))
+            continue
+        out[k] = float(v)
+    return out
+
+
+def _camera_model_problem(entry: IntrinsicsSchema) -> str | None:
+    model = (entry.model_extra or {}).get("camera_model")
+    if isinstance(model, str) and any(m in model.upper() for m in UNSUPPORTED_MODELS):
+        return (f"camera_model {model!r} is not supported: only pinhole cameras with OpenCV lens distortion (k1 k2 k3 "
+                "p1 p2; camera_model OPENCV, PINHOLE or none); convert the photos to a pinhole camera first")
+    return None
+
+
+def _frame_distortion(fr: FrameSchema, top: dict[str, float], label: str,
+                      problems: list[Problem]) -> Distortion | None:
+    """The frame's lens distortion (its own coefficients over the top level's), None when there is none."""
+    own = _distortion_values(fr, f"{label}: ", problems)
+    values = {**top, **own}
+    model = _camera_model_problem(fr)
+    if model:
+        problems.append(Problem(TRANSFORMS, f"{label}: {model}"))
+    if own.get("k4", 0.0) != 0.0:  # the top level's is reported once by parse_capture
+        problems.append(Problem(TRANSFORMS, f"{label}: {K4_MESSAGE}"))
+    dist = Distortion(*(values.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")))
+    return None if dist.is_zero else dist
 
 
 def _parse_frame(
-    root: Path, i: int, fr: FrameSchema, top: TransformsSchema, problems: list[Problem]
+    root: Path, i: int, fr: FrameSchema, top: TransformsSchema, problems: list[Problem],
+    top_distortion: dict[str, float] | None = None,
 ) -> tuple[ParsedFrame, tuple[str, ...]]:
     """The frame as far as it is usable, and the intrinsics it lacks (reported grouped by the caller)."""
-    parsed = ParsedFrame(i, fr.file_path, None, None, None, fr.mask_path)
+    parsed = ParsedFrame(i, fr.file_path, None, None, None, fr.mask_path, exposure=float(fr.exposure))
     label = parsed.label
     parsed.image_path = _existing_file(root, fr.file_path, "image", label, problems, image=True)
     if fr.mask_path is not None:
@@ -256,9 +324,7 @@ def _parse_frame(
     missing = tuple(k for k in INTRINSICS if values[k] is None)
     if not missing:
         parsed.size = (int(values["w"]), int(values["h"]))
-    distortion = _distortion(fr)
-    if distortion:
-        problems.append(Problem(TRANSFORMS, f"{label}: {_distortion_message(distortion)}"))
+    parsed.distortion = _frame_distortion(fr, top_distortion or {}, label, problems)
     c2w = np.asarray(fr.transform_matrix, dtype=np.float64)
     pose = pose_problems(c2w)
     problems.extend(Problem(TRANSFORMS, f"{label}: {msg}") for msg in pose)
@@ -275,8 +341,32 @@ def _parse_frame(
     return parsed, missing
 
 
-def _distortion_message(keys: list[str]) -> str:
-    return f"lens distortion ({', '.join(keys)}) is not supported; undistort the photos and set it to 0"
+def _tonemap(raw: Any, schema: TonemapSchema, out: ParsedCapture) -> Tonemap:
+    """The tonemap, with the keys the format does not define: `oetf` is taken as `transfer` ("srgb" or "linear";
+    refused when it contradicts it), `clip` must say what T does (true, or [0, 1]); others are ignored with a
+    warning naming them."""
+    extra = dict(schema.model_extra or {})
+    transfer = schema.transfer
+    if "oetf" in extra:
+        oetf = extra.pop("oetf")
+        given = isinstance(raw, dict) and "transfer" in raw
+        if oetf not in ("srgb", "linear"):
+            out.problems.append(Problem(TRANSFORMS, f"tonemap.oetf: {oetf!r} is not a transfer function this format "
+                                        "knows ('srgb' or 'linear'; the key is an alias of tonemap.transfer)"))
+        elif given and oetf != transfer:
+            out.problems.append(Problem(TRANSFORMS, f"tonemap.oetf {oetf!r} contradicts tonemap.transfer "
+                                        f"{transfer!r}; give one of them"))
+        else:
+            transfer = oetf
+    if "clip" in extra:
+        clip = extra.pop("clip")
+        if clip is not True and clip != [0, 1]:
+            out.problems.append(Problem(TRANSFORMS, f"tonemap.clip: {clip!r} is not supported; the tonemap always "
+                                        "clips exposure * radiance to [0, 1] (true)"))
+    if extra:
+        out.warnings.append(Problem(TRANSFORMS, f"tonemap keys {', '.join(sorted(extra))} are not part of the format "
+                                    f"(it knows {', '.join(TONEMAP_KEYS)}) and are ignored"))
+    return Tonemap(schema.exposure, transfer)
 
 
 def _validate_top(data: Any, problems: list[Problem]) -> tuple[TransformsSchema | None, set[str]]:
@@ -349,8 +439,11 @@ def parse_capture(root: str | Path) -> ParsedCapture:
     out.schema_ok = True
     if not top.frames:
         problems.append(Problem(TRANSFORMS, "has no frames: a capture needs at least one photo"))
-    if _distortion(top):
-        problems.append(Problem(TRANSFORMS, _distortion_message(_distortion(top))))
+    top_distortion = _distortion_values(top, "", problems)
+    if top_distortion.get("k4", 0.0) != 0.0:
+        problems.append(Problem(TRANSFORMS, K4_MESSAGE))
+    if _camera_model_problem(top):
+        problems.append(Problem(TRANSFORMS, str(_camera_model_problem(top))))
     seen: dict[Path, int] = {}
     missing: dict[tuple[str, ...], list[int]] = {}
     for i, raw in enumerate(top.frames):
@@ -359,7 +452,7 @@ def parse_capture(root: str | Path) -> ParsedCapture:
         except ValidationError as exc:
             problems.extend(schema_problems(exc, prefix=("frames", i)))
             continue
-        frame, lacking = _parse_frame(root, i, fr, top, problems)
+        frame, lacking = _parse_frame(root, i, fr, top, problems, top_distortion)
         out.frames.append(frame)
         if lacking:
             missing.setdefault(lacking, []).append(i)
@@ -389,7 +482,7 @@ def parse_capture(root: str | Path) -> ParsedCapture:
         if not msgs:
             out.envmap_to_world = rot
     out.envmap_scale = float(top.envmap_scale)
-    out.tonemap = Tonemap(top.tonemap.exposure, top.tonemap.transfer)
+    out.tonemap = _tonemap(data.get("tonemap"), top.tonemap, out)
     return out
 
 
@@ -477,7 +570,11 @@ def load_capture(path: str | Path, workdir: str | Path | None = None) -> Capture
     """
     opened = open_capture_folder(path, workdir)
     try:
-        return parse_capture(opened.root).capture(opened.workdir)
+        with allow_outside_paths(_ALLOW_OUTSIDE.get() and not is_zip(Path(path))):  # a zip is self-contained
+            parsed = parse_capture(opened.root)
+        for w in parsed.warnings:
+            log.warning("warning: %s", w)
+        return parsed.capture(opened.workdir)
     except BaseException:
         if opened.workdir is not None:
             opened.workdir.cleanup()

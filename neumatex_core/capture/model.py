@@ -7,11 +7,12 @@ A `Capture` is what `load_capture` returns once transforms.json parsed and every
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from neumatex_core.capture.distortion import Distortion, undistort
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.mesh import Mesh, load_mesh
@@ -47,11 +48,17 @@ class Frame:
     image_path: absolute path of the photo (display-encoded LDR, or linear EXR when the tonemap says so).
     camera: its pinhole camera (nerfstudio/OpenGL convention, intrinsics in pixels of this image).
     mask_path: absolute path of a foreground mask of the same size (white = object), or None.
+    distortion: the lens distortion of the photo file (transforms.json's k1 k2 k3 p1 p2), or None; the loaders
+    undistort the photo and its mask into `camera` (a pinhole with the same intrinsics; capture/distortion.py).
+    exposure: the photo's own exposure, a unitless linear multiplier (> 0) on top of the capture's tonemap exposure
+    (hand-held photos each have their own; `Capture.tonemap_of`, docs/capture-format.md).
     """
 
     image_path: Path
     camera: Camera
     mask_path: Path | None = None
+    distortion: Distortion | None = None
+    exposure: float = 1.0
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: numpy fields make == ambiguous; captures compare by identity
@@ -64,7 +71,8 @@ class Capture:
     envmap_path: absolute path of the equirectangular linear HDR environment map (EXR/HDR, width = 2 height).
     envmap_to_world: [3, 3] float64 rotation from envmap space to world space (Mitsuba 3 `to_world`).
     envmap_scale: unitless multiplier on the map's radiance (> 0).
-    tonemap: the display transform T that turns rendered radiance into the photos' pixel values.
+    tonemap: the display transform T that turns rendered radiance into the photos' pixel values (a frame with its
+    own exposure uses `tonemap_of(i)`).
     """
 
     root: Path
@@ -81,6 +89,16 @@ class Capture:
     def cameras(self) -> list[Camera]:
         return [f.camera for f in self.frames]
 
+    def tonemap_of(self, i: int) -> Tonemap:
+        """The tonemap of frame i: the capture's, its exposure multiplied by the frame's own `exposure`."""
+        exposure = self.frames[i].exposure
+        return self.tonemap if exposure == 1.0 else replace(self.tonemap, exposure=self.tonemap.exposure * exposure)
+
+    @property
+    def exposures(self) -> list[float]:
+        """Each frame's own exposure multiplier (on top of `tonemap.exposure`), in frame order."""
+        return [f.exposure for f in self.frames]
+
     def relative(self, path: Path) -> str:
         """`path` relative to the capture root, in POSIX form (for messages)."""
         try:
@@ -91,17 +109,30 @@ class Capture:
     def load_image(self, i: int) -> np.ndarray:
         """Photo of frame i as float32 [H, W, 3] in the file's encoding (grey replicated, alpha dropped).
 
-        Raises ImageError naming the file when it cannot be read or has 2 or more than 4 channels.
+        A photo with lens distortion comes back undistorted into the frame's pinhole camera (pixels with no source
+        are 0; `load_mask` leaves them out). Raises ImageError naming the file when it cannot be read or has 2 or
+        more than 4 channels.
         """
-        path = self.frames[i].image_path
-        return to_rgb(read_image(path), path)
+        frame = self.frames[i]
+        rgb = to_rgb(read_image(frame.image_path), frame.image_path)
+        if frame.distortion is not None:
+            rgb = undistort(rgb, frame.camera, frame.distortion)[0]
+        return rgb
 
     def load_mask(self, i: int) -> np.ndarray | None:
-        """Foreground mask of frame i as bool [H, W] (first channel > 0.5); None without a mask."""
-        path = self.frames[i].mask_path
-        if path is None:
-            return None
-        return np.asarray(read_image(path)[:, :, 0] > 0.5)
+        """Foreground mask of frame i as bool [H, W] (first channel > 0.5); None without a mask. For a photo with
+        lens distortion: the undistorted mask, without the pixels that undistortion could not fill (a mask of those
+        alone when the frame has no mask file and some pixels lack a source)."""
+        frame = self.frames[i]
+        mask = None if frame.mask_path is None else np.asarray(read_image(frame.mask_path)[:, :, 0] > 0.5)
+        if frame.distortion is None:
+            return mask
+        if mask is None:
+            valid = undistort(np.ones((frame.camera.height, frame.camera.width, 1), np.float32), frame.camera,
+                              frame.distortion, nearest=True)[1]  # fmt: skip
+            return None if valid.all() else valid
+        moved, valid = undistort(mask[:, :, None].astype(np.float32), frame.camera, frame.distortion, nearest=True)
+        return np.asarray((moved[:, :, 0] > 0.5) & valid)
 
     def load_envmap(self) -> np.ndarray:
         """The environment map as float32 [H, W, 3] linear radiance, multiplied by `envmap_scale`.

@@ -21,7 +21,10 @@ from neumatex_core.capture.loader import (
     TRANSFORMS,
     ParsedCapture,
     ParsedFrame,
+    allow_outside_paths,
+    is_zip,
     open_capture_folder,
+    outside_paths_allowed,
     parse_capture,
 )
 from neumatex_core.capture.model import CaptureError, Problem
@@ -40,6 +43,7 @@ class ValidationReport:
     """Problems found plus, for the OK line, what was read: frame count, mesh faces, envmap (w, h)."""
 
     problems: list[Problem] = field(default_factory=list)
+    warnings: list[Problem] = field(default_factory=list)
     n_frames: int = 0
     mesh_faces: int | None = None
     envmap_size: tuple[int, int] | None = None
@@ -181,7 +185,7 @@ def _check_visibility(parsed: ParsedCapture, mesh: Mesh, problems: list[Problem]
 def check_capture_folder(root: Path) -> ValidationReport:
     """Every problem of the capture whose transforms.json is in `root` (see module doc)."""
     parsed = parse_capture(root)
-    report = ValidationReport(problems=parsed.problems, n_frames=len(parsed.frames))
+    report = ValidationReport(problems=parsed.problems, warnings=parsed.warnings, n_frames=len(parsed.frames))
     if not parsed.schema_ok:
         return report
     problems = report.problems
@@ -203,7 +207,8 @@ def inspect_capture(path: str | Path) -> ValidationReport:
     except CaptureError as exc:
         return ValidationReport(problems=exc.problems)
     try:
-        return check_capture_folder(opened.root)
+        with allow_outside_paths(outside_paths_allowed() and not is_zip(Path(path))):  # a zip is self-contained
+            return check_capture_folder(opened.root)
     finally:
         if opened.workdir is not None:
             opened.workdir.cleanup()

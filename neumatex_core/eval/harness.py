@@ -56,7 +56,7 @@ def _render_psnr(object_dir: Path, field: MaterialField, views: Sequence[int], s
     for v in views:
         cam = cap.frames[v].camera
         with torch.no_grad():
-            image = cap.tonemap.apply(tracer.render(env_scene, cam, seed=seed + v)).cpu()
+            image = cap.tonemap_of(v).apply(tracer.render(env_scene, cam, seed=seed + v)).cpu()
         mask = torch.as_tensor(coverage_mask(cap, mesh, v))
         scores.append(psnr(image, torch.as_tensor(cap.load_image(v)), mask))
     return float(sum(scores) / len(scores))
@@ -122,7 +122,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     scene_mesh = mesh
     if tto is not None:
         photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
-                          [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
+                          [cap.load_mask(i) for i in range(len(cap.frames))], exposure=cap.exposures)  # fmt: skip
         truth = truth_lookup(gt) if tto.reg == "oracle" else None
         result = solve(tto, mesh, env, photos, cap.tonemap, pred, load_basis(basis_id=tto.basis), truth=truth)
         params, scene_mesh = result.params, result.mesh or mesh
@@ -203,7 +203,8 @@ def write_figures(folder: Path, cap: Any, field: MaterialField, gfn: Any, mesh: 
     cam = cap.frames[view].camera
     tracer = PathTracer(PathTracerConfig(spp=spp, max_bounces=bounces))
     with torch.no_grad():
-        image = cap.tonemap.apply(tracer.render(Scene(mesh, harness_envmap(cap), field), cam, seed=seed + view)).cpu()
+        image = cap.tonemap_of(view).apply(tracer.render(Scene(mesh, harness_envmap(cap), field), cam,
+                                                         seed=seed + view)).cpu()
         g = render_gbuffer(mesh, cam)
         mask = g.mask.reshape(-1)
         values = torch.ones(mask.shape[0], 9)

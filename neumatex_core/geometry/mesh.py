@@ -155,8 +155,10 @@ def _decode(data: bytes) -> str:
 def load_mesh(path: str | Path, smooth: bool = True) -> Mesh:
     """Load an OBJ, PLY, GLB/glTF or STL file through trimesh as one triangle mesh.
 
-    Scenes with several geometries are concatenated. With `smooth`, vertex normals are the file's (when
-    consistent) or area-weighted ones; otherwise shading is flat. Raises MeshError naming the file.
+    Scenes with several geometries are concatenated. The file's own normals (OBJ `vn`, PLY nx ny nz, ...) are not
+    used: with `smooth`, vertex normals are recomputed from the faces (area-weighted, `Mesh.with_smooth_normals`);
+    otherwise there are none and shading is flat. UVs are kept when there is one per vertex. Raises MeshError naming
+    the file.
     """
     import trimesh
 

@@ -40,8 +40,8 @@ RANGES: dict[str, Range] = {
     "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
-    "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000),
-    "decoder_lr": Range(0, 100, lo_open=True)}  # fmt: skip
+    "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_bsdf_fit_steps": Range(0, 100_000),
+    "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,9 @@ class TTOConfig:
     checkpoints (0: only when stopped); seed: every random draw of step s depends only on (seed, s).
     train_decoder: the triplane variants also fine-tune (a copy of) their decoder, at lr x decoder_lr (the frozen
     LMRM decoder caps what a triplane can express: docs/design-notes.md, "TTO fine-tunes the decoder").
+    photo_exposure: also fit each photo's exposure (hand-held photos whose exposures are not known): a learnable
+    log-scale per photo on top of the capture's given exposure, its mean over photos pinned to 0, Adam at
+    exposure_lr (cosine-decayed like lr; tto/optimise.py `ExposureFit`).
     estimator "cached": each cache holds `cache_pixels` pixels x spp camera rays with `cache_directions` incident
     directions per hit and is rebuilt (new pixels, new directions, indirect light of the current material) every
     `cache_every` steps; a step draws its `pixels` pixels from the current cache.
@@ -92,11 +95,15 @@ class TTOConfig:
     # (bench/pbr_start.py, clean PathTrace, PBR solution 30.0 dB): 300 steps 26.9 dB, 1500 steps 29.0 dB (14 s),
     # the per-point conversion without the triplane 29.2 dB (docs/design-notes.md, item 26)
     pbr_fit_steps: int = 1500
+    # then Adam steps refining that start so its BSDF matches PBR's (tto/pbr_start.py `refine_to_pbr_bsdf`)
+    pbr_bsdf_fit_steps: int = 0
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # "" = the default neural basis; another installed basis (materials/data/bases/) by id. The LMRM predicts the
     # default basis's latents, so another basis needs a start and an anchor that do not come from it.
     basis: str = ""
+    photo_exposure: bool = False
+    exposure_lr: float = 0.05
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:

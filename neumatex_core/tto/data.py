@@ -1,8 +1,9 @@
 """TTO's inputs: the photos as random pixel batches, and area-uniform surface samples for the anchor.
 
-`PhotoSet` holds every photo's display values (what the capture's tonemap T makes of radiance) and its camera in
-the normalised frame; `batch(n, spp, generator)` draws n foreground pixels uniformly over all photos and gives
-`spp` jittered rays through each, so a step costs n * spp paths whatever the photos' size.
+`PhotoSet` holds every photo's display values (what the capture's tonemap T makes of radiance), its camera in
+the normalised frame and its own exposure multiplier (`Frame.exposure`: photo f shows T(exposure[f] * radiance));
+`batch(n, spp, generator)` draws n foreground pixels uniformly over all photos and gives `spp` jittered rays through
+each, so a step costs n * spp paths whatever the photos' size.
 """
 
 from __future__ import annotations
@@ -21,25 +22,34 @@ from neumatex_core.geometry.raycast import RayCaster
 
 @dataclass
 class RayBatch:
-    """origins, directions [n * spp, 3] (samples of one pixel contiguous); target [n, 3] display values."""
+    """origins, directions [n * spp, 3] (samples of one pixel contiguous); target [n, 3] display values; frame [n]
+    (int64) the photo of each pixel; exposure [n] its photo's given exposure multiplier (unitless, > 0)."""
 
     origins: torch.Tensor
     directions: torch.Tensor
     target: torch.Tensor
     spp: int
+    frame: torch.Tensor
+    exposure: torch.Tensor
 
 
 class PhotoSet:
-    """Photos (display values [H, W, 3] in [0, 1], one camera each, optional foreground masks [H, W]) on `mesh`.
+    """Photos (display values [H, W, 3] in [0, 1], one camera each, optional foreground masks [H, W]) on `mesh`;
+    `exposure`: each photo's own exposure multiplier on top of the tonemap's (`Capture.exposures`; default all 1).
 
     Foreground = the mesh covers the pixel centre (a ray query) and, where a mask is given, the mask is set."""
 
     def __init__(self, images: Sequence[np.ndarray], cameras: Sequence[Camera], mesh: Mesh,
-                 masks: Sequence[np.ndarray | None] | None = None, device: torch.device | str = "cpu") -> None:
+                 masks: Sequence[np.ndarray | None] | None = None, device: torch.device | str = "cpu",
+                 exposure: Sequence[float] | None = None) -> None:
         if len(images) != len(cameras) or not images:
             raise ValueError(f"need one camera per photo, got {len(images)} photos and {len(cameras)} cameras")
+        if exposure is not None and (len(exposure) != len(images) or not all(e > 0 for e in exposure)):
+            raise ValueError(f"need one positive exposure per photo, got {list(exposure)} for {len(images)} photos")
         self.device = torch.device(device)
         self.cameras = list(cameras)
+        self.exposure = torch.tensor([1.0] * len(images) if exposure is None else [float(e) for e in exposure],
+                                     dtype=torch.float32, device=self.device)  # [F]
         caster = RayCaster(mesh)
         colours, pixels = [], []
         for f, (img, cam) in enumerate(zip(images, cameras, strict=True)):
@@ -56,6 +66,11 @@ class PhotoSet:
         self.pixel = torch.cat(pixels).to(self.device)  # [M, 3]: frame, x, y
         if self.pixel.shape[0] == 0:
             raise ValueError("the mesh covers no pixel of any photo")
+
+    @property
+    def count(self) -> int:
+        """Photos."""
+        return len(self.cameras)
 
     @property
     def size(self) -> int:
@@ -75,4 +90,4 @@ class PhotoSet:
             sel = (frame == f).nonzero().squeeze(-1)
             o, d = self.cameras[f].rays_for_pixels(xy[sel, 0], xy[sel, 1])
             origins[sel], directions[sel] = o, d
-        return RayBatch(origins, directions, self.colour[idx], spp)
+        return RayBatch(origins, directions, self.colour[idx], spp, pix[:, 0], self.exposure[pix[:, 0]])

@@ -1,6 +1,7 @@
 """TTO's objective (paper eq. 9-11): L = L_photo + lambda_reg * L_reg.
 
-- L_photo: mean over pixels and channels of (T(render) - photo)^2, T the capture's tonemap (display values);
+- L_photo: mean over pixels and channels of (T(s * render) - photo)^2, T the capture's tonemap (display values) and
+  s the pixel's photo's exposure multiplier (given by the capture, times the one TTO fits with `photo_exposure`);
 - L_reg: mean over surface points p and channels c of w_c(p) (G_c(p) - A_c(p))^2, where A is the anchor (the LMRM's
   G-buffers at p) and w the per-channel weights: exp(-log_var) of the LMRM's uncertainty ("uncertainty"),
   1 / max(e^2, eps) with e the LMRM's actual error against ground truth ("oracle"), or 0 ("none").
@@ -19,10 +20,14 @@ ORACLE_EPS = 1e-4  # floor of the oracle's squared error (a perfect LMRM channel
 LOG_VAR_MIN = -12.0  # floor of the predicted log-variances: weights at most e^12
 
 
-def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, tonemap: Tonemap) -> torch.Tensor:
+def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, tonemap: Tonemap,
+                     scale: torch.Tensor | None = None) -> torch.Tensor:
     """L_photo of path samples radiance [n * spp, 3] (linear, samples of one pixel contiguous) against target
-    display values [n, 3]: mean of (T(mean over the spp samples) - target)^2."""
+    display values [n, 3]: mean of (T(scale * mean over the spp samples) - target)^2; scale [n] (unitless): each
+    pixel's photo's exposure multiplier on top of T's (None: 1)."""
     pixel = radiance.reshape(-1, spp, 3).mean(1)
+    if scale is not None:
+        pixel = pixel * scale.unsqueeze(-1)
     return ((tonemap.apply(pixel) - target) ** 2).mean()
 
 

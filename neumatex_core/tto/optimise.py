@@ -9,6 +9,9 @@ Every random draw of step s (pixels, jitter, paths, anchor points) comes from a 
 steps 0, cache_every, 2 cache_every, ... from the tensor of that step, which the checkpoint keeps. So a run stopped
 after step s and resumed from its checkpoint gives the same tensor, bit for bit on one device, as an uninterrupted
 run.
+
+With config.photo_exposure the loop also fits each photo's exposure (`ExposureFit`: hand-held photos, each exposed
+differently and not known): a scale per photo multiplies its pixels' rendered radiance before the tonemap.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import copy
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,10 +49,47 @@ Truth = Callable[[torch.Tensor], torch.Tensor]  # points [P, 3] -> ground-truth 
 CHECKPOINT_FORMAT = "nmx-tto-2"
 
 
+class ExposureFit:
+    """The per-photo exposures TTO fits (TTOConfig.photo_exposure): a learnable log-scale u [F] per photo (a leaf,
+    initialised at 0, i.e. at the capture's given exposure) and the unitless multipliers s_f = exp(u_f - mean(u))
+    that scale photo f's rendered radiance before the tonemap, on top of its given exposure.
+
+    The mean of u over the photos is pinned to 0 (it is subtracted in `scale`, and `project` removes it from u after
+    each step, which changes no scale): the photos only see s_f times the material's radiance, so a common factor
+    c on every s_f and 1 / c on the material's albedo would render the same photos. Unpinned, the loss cannot tell
+    them apart and the overall brightness would drift between exposures and material, which the known environment
+    map's radiance fixes in absolute terms (and relighting needs). Pinned, the fit only redistributes brightness
+    among the photos; their geometric mean stays at the given exposures'.
+    """
+
+    def __init__(self, count: int, device: torch.device | str = "cpu") -> None:
+        self.log_scale = torch.zeros(count, device=device, requires_grad=True)
+
+    def scale(self) -> torch.Tensor:
+        """s [F]: each photo's fitted exposure multiplier, geometric mean 1 (differentiable)."""
+        return torch.exp(self.log_scale - self.log_scale.mean())
+
+    def project(self) -> None:
+        """Remove the mean from the log-scales (after an optimiser step)."""
+        with torch.no_grad():
+            self.log_scale -= self.log_scale.mean()
+
+    def values(self) -> list[float]:
+        """The fitted multipliers s_f as floats (photo order)."""
+        return [float(v) for v in self.scale().detach().cpu()]
+
+    def start_at(self, scales: Sequence[float]) -> None:
+        """Start from multipliers [F] fitted before (e.g. by an earlier phase), renormalised to geometric mean 1."""
+        with torch.no_grad():
+            self.log_scale.copy_(torch.log(torch.as_tensor(scales, dtype=torch.float32)).to(self.log_scale.device))
+        self.project()
+
+
 @dataclass
 class TTOProblem:
     """One object's TTO: the scene mesh (normalised frame; xatlas-unwrapped for UV fields), lighting, photos and
-    their tonemap, the parametrisation being optimised and the anchor (None: no regulariser)."""
+    their tonemap, the parametrisation being optimised, the anchor (None: no regulariser) and the photos' fitted
+    exposures (None: the given ones are used as they are)."""
 
     mesh: Mesh
     envmap: EnvironmentMap
@@ -58,13 +98,20 @@ class TTOProblem:
     params: Parametrisation
     anchor: Anchor | None
     device: torch.device
+    exposure: ExposureFit | None = None
+
+    def photo_scale(self, frame: torch.Tensor, given: torch.Tensor) -> torch.Tensor:
+        """[n] the exposure multiplier of pixels of photos `frame` [n] (int64) whose given exposures are `given` [n]:
+        given times the fitted one (differentiable in the fitted log-scales)."""
+        return given if self.exposure is None else given * self.exposure.scale()[frame]
 
 
 @dataclass
 class TTOResult:
     """params: the optimised parametrisation; history: one row per step (step, loss, photo, reg, psnr, lr);
     steps_done of config.steps; finished: False when stopped early; seconds: wall time of this call; mesh: the
-    problem's mesh."""
+    problem's mesh; exposure: with config.photo_exposure, each photo's fitted exposure multiplier on top of its
+    given one (unitless, geometric mean 1; `ExposureFit`), else None."""
 
     params: Parametrisation
     history: list[dict[str, float]] = field(default_factory=list)
@@ -72,6 +119,7 @@ class TTOResult:
     finished: bool = False
     seconds: float = 0.0
     mesh: Mesh | None = None  # the mesh the field lives on (xatlas-unwrapped for UV fields)
+    exposure: list[float] | None = None
 
 
 def _neural_gbuffer(prediction: LMRMPrediction, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -152,7 +200,8 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
                 else:
                     weight = uncertainty_weights(log_var)
         anchor = Anchor(points, uv, target, weight)
-    return TTOProblem(scene_mesh, envmap, photos, tonemap, params, anchor, device)
+    exposure = ExposureFit(photos.count, device) if config.photo_exposure else None
+    return TTOProblem(scene_mesh, envmap, photos, tonemap, params, anchor, device, exposure)
 
 
 def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
@@ -162,11 +211,15 @@ def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
     return copy.deepcopy(decoder).requires_grad_(True)
 
 
-def make_optimizer(params: Parametrisation, config: TTOConfig) -> torch.optim.Adam:
-    """Adam over the field's tensor (group 0) and, with train_decoder, its decoder (group 1, lr x decoder_lr)."""
+def make_optimizer(params: Parametrisation, config: TTOConfig,
+                   exposure: ExposureFit | None = None) -> torch.optim.Adam:
+    """Adam over the field's tensor (group 0), with train_decoder its decoder (lr x decoder_lr) and with `exposure`
+    the photos' log-scales (at exposure_lr, on the same cosine schedule)."""
     groups: list[dict[str, Any]] = [{"params": [params.tensor], "lr_scale": 1.0}]
     if params.decoder_parameters():
         groups.append({"params": params.decoder_parameters(), "lr_scale": config.decoder_lr})
+    if exposure is not None:
+        groups.append({"params": [exposure.log_scale], "lr_scale": config.exposure_lr / config.lr})
     return torch.optim.Adam(groups, lr=config.lr)
 
 
@@ -183,17 +236,18 @@ def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.
 
 def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametrisation,
                      opt: torch.optim.Optimizer, history: list[dict[str, float]],
-                     cache_tensor: torch.Tensor | None) -> None:
+                     cache_tensor: torch.Tensor | None, exposure: ExposureFit | None = None) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
                 "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history,
                 "decoder": None if params.decoder is None else params.decoder.state_dict(),
-                "cache_tensor": None if cache_tensor is None else cache_tensor.cpu()}, tmp)  # fmt: skip
+                "cache_tensor": None if cache_tensor is None else cache_tensor.cpu(),
+                "exposure": None if exposure is None else exposure.log_scale.detach().cpu()}, tmp)  # fmt: skip
     os.replace(tmp, path)
 
 
-def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation,
-                     opt: torch.optim.Optimizer) -> tuple[int, list[dict[str, float]], torch.Tensor | None]:
+def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation, opt: torch.optim.Optimizer,
+                     exposure: ExposureFit | None = None) -> tuple[int, list[dict[str, float]], torch.Tensor | None]:
     try:
         state: dict[str, Any] = torch.load(path, map_location=params.tensor.device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - a torn or foreign file: start over rather than fail
@@ -204,6 +258,9 @@ def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation,
         params.tensor.copy_(state["tensor"])
     if params.decoder is not None and state.get("decoder") is not None:
         params.decoder.load_state_dict(state["decoder"])
+    if exposure is not None and state.get("exposure") is not None:
+        with torch.no_grad():
+            exposure.log_scale.copy_(state["exposure"])
     opt.load_state_dict(state["optimizer"])
     cache_tensor = state.get("cache_tensor")
     return int(state["step"]), list(state["history"]), None if cache_tensor is None else cache_tensor.to(params.tensor)
@@ -219,6 +276,7 @@ class CachedPhotos:
                                                  indirect_bounces=config.max_bounces - 1)  # fmt: skip
         self.cache: TransportCache | None = None
         self.target = torch.empty(0)
+        self.frame, self.given = torch.empty(0, dtype=torch.int64), torch.empty(0)
         self.tensor_at_build: torch.Tensor | None = None
 
     def build(self, step: int, tensor: torch.Tensor) -> None:
@@ -233,6 +291,7 @@ class CachedPhotos:
             self.cache = TransportCache.build(self.scene, batch.origins, batch.directions, g, self.cache_config)
             params.tensor.copy_(live)
         self.target, self.tensor_at_build = batch.target, tensor.detach().clone()
+        self.frame, self.given = batch.frame, batch.exposure
 
     def loss(self, g: torch.Generator) -> torch.Tensor:
         """L_photo of `config.pixels` pixels of the current cache."""
@@ -241,7 +300,8 @@ class CachedPhotos:
         pix = torch.randint(0, cfg.cache_pixels, (cfg.pixels,), generator=g, device=self.problem.device)
         rays = (pix.unsqueeze(-1) * cfg.spp + torch.arange(cfg.spp, device=pix.device)).reshape(-1)
         radiance = self.cache.radiance(self.problem.params.field(), rays)
-        return photometric_loss(radiance, self.target[pix], cfg.spp, self.problem.tonemap)
+        scale = self.problem.photo_scale(self.frame[pix], self.given[pix])
+        return photometric_loss(radiance, self.target[pix], cfg.spp, self.problem.tonemap, scale)
 
 
 def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None = None,
@@ -250,12 +310,12 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     step; `should_stop()` is checked before every step: when true the state is checkpointed and the result comes
     back with finished=False."""
     t0 = time.perf_counter()
-    params = problem.params
-    opt = make_optimizer(params, config)
+    params, exposure = problem.params, problem.exposure
+    opt = make_optimizer(params, config, exposure)
     step, history = 0, list[dict[str, float]]()
     cache_tensor: torch.Tensor | None = None
     if checkpoint is not None and checkpoint.is_file():
-        step, history, cache_tensor = _load_checkpoint(checkpoint, config, params, opt)
+        step, history, cache_tensor = _load_checkpoint(checkpoint, config, params, opt, exposure)
     scene = Scene(problem.mesh, problem.envmap, params.field(), device=problem.device)
     tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1),
                                          spp=config.spp))  # fmt: skip
@@ -267,8 +327,9 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         if should_stop is not None and should_stop():
             if checkpoint is not None:
                 _save_checkpoint(checkpoint, config, step, params, opt, history,
-                                 None if cached is None else cached.tensor_at_build)  # fmt: skip
-            return TTOResult(params, history, step, False, time.perf_counter() - t0, problem.mesh)
+                                 None if cached is None else cached.tensor_at_build, exposure)  # fmt: skip
+            return TTOResult(params, history, step, False, time.perf_counter() - t0, problem.mesh,
+                             None if exposure is None else exposure.values())  # fmt: skip
         g = step_generator(config, step, problem.device)
         lr = learning_rate(config, step)
         for group in opt.param_groups:
@@ -280,7 +341,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         else:
             batch = problem.photos.batch(config.pixels, config.spp, g)
             radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
-            photo = photometric_loss(radiance, batch.target, config.spp, problem.tonemap)
+            scale = problem.photo_scale(batch.frame, batch.exposure)
+            photo = photometric_loss(radiance, batch.target, config.spp, problem.tonemap, scale)
         loss = photo
         reg = torch.zeros((), device=problem.device)
         if anchor is not None:
@@ -292,17 +354,22 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         loss.backward()
         opt.step()
         params.project()
+        if exposure is not None:
+            exposure.project()
         step += 1
         mse = float(photo.detach())
         row = {"step": float(step), "loss": float(loss.detach()), "photo": mse, "reg": float(reg.detach()),
                "psnr": 10 * math.log10(1 / max(mse, 1e-12)), "lr": lr}  # fmt: skip
+        if exposure is not None:  # the largest fitted exposure correction so far, in stops (|log2 s_f|)
+            row["exposure_stops_max"] = float(exposure.scale().detach().log2().abs().max())
         history.append(row)
         if progress is not None:
             progress(step, config.steps, row)
         if checkpoint is not None and config.checkpoint_every and step % config.checkpoint_every == 0:
             _save_checkpoint(checkpoint, config, step, params, opt, history,
-                             None if cached is None else cached.tensor_at_build)  # fmt: skip
+                             None if cached is None else cached.tensor_at_build, exposure)  # fmt: skip
     if checkpoint is not None:
         _save_checkpoint(checkpoint, config, step, params, opt, history,
-                         None if cached is None else cached.tensor_at_build)  # fmt: skip
-    return TTOResult(params, history, step, True, time.perf_counter() - t0, problem.mesh)
+                         None if cached is None else cached.tensor_at_build, exposure)  # fmt: skip
+    return TTOResult(params, history, step, True, time.perf_counter() - t0, problem.mesh,
+                     None if exposure is None else exposure.values())  # fmt: skip

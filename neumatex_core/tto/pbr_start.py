@@ -6,9 +6,11 @@
 triplane, no anchor, `config.pbr_steps` steps, checkpoint `checkpoint_pbr.pt`), then the neural TTO from that
 solution: the neural triplane's planes are fitted (the material decoder frozen) so that its G-buffers equal the PBR
 field's base colour, roughness and metallic expressed in the basis (`materials/pbr_to_neural.py`) at area-uniform
-surface points, and the neural TTO goes on from there (`config.steps` steps, checkpoint `checkpoint.pt`). So the
-neural material begins at the PBR fit (up to the basis's and the fit's error, which the history records as
-`start_mse`) and the photos pull it towards the lobes PBR lacks.
+surface points, then (`config.pbr_bsdf_fit_steps` > 0) refined so that its BSDF itself matches PBR's
+(`refine_to_pbr_bsdf`: the encoder's conversion is only as good as the encoder, and it loses coloured conductors),
+and the neural TTO goes on from there (`config.steps` steps, checkpoint `checkpoint.pt`). So the neural material
+begins at the PBR fit (up to the basis's and the fit's error, which the history records as `start_mse`) and the
+photos pull it towards the lobes PBR lacks.
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRMPrediction
-from neumatex_core.materials.neural_basis import NeuralBasis
+from neumatex_core.materials.basis_training import log_target, uniform_hemisphere
+from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial
+from neumatex_core.materials.pbr import PBRMaterial
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural
 from neumatex_core.tto.config import TTOConfig
 from neumatex_core.tto.data import PhotoSet
@@ -35,6 +39,8 @@ from neumatex_core.tto.params import NeuralTriplane, PBRTriplane
 FIT_POINTS = 1 << 15  # area samples the start is fitted on
 FIT_STEPS = 1500  # the default of TTOConfig.pbr_fit_steps
 FIT_LR = 0.05
+BSDF_FIT_BATCH = 4096  # surface points per step of `refine_to_pbr_bsdf`, one (wi, wo) pair each
+BSDF_FIT_LR = 0.02
 
 
 def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor, latent: torch.Tensor, seed: int = 0,
@@ -74,6 +80,43 @@ def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis
     return fit_planes(neural, points, rho, latent, seed, steps)
 
 
+def refine_to_pbr_bsdf(neural: NeuralTriplane, basis: NeuralBasis, points: torch.Tensor, pbr_values: torch.Tensor,
+                       seed: int = 0, steps: int = 300) -> float:
+    """Refine the planes of `neural` (in place, and its decoder where TTO fine-tunes it) so that its BSDF equals the
+    PBR material's at surface points [P, 3], whose PBR G-buffers are pbr_values [P, 5] (base colour, roughness,
+    metallic; `PBRTriplane.gbuffer`): the loss the basis is trained with (materials/basis_training.py: L1 of
+    log(f cos_i + EPS), relative error on peaks and tails alike) between the neural material's whole f (diffuse and
+    f_neu) and PBR's; wo uniform on the hemisphere, wi half from PBR's importance sampler (its specular peak), half
+    uniform; fresh directions every step. Returns the last step's loss (mean log-L1)."""
+    device = points.device
+    want = pbr_values.detach()
+    opt = torch.optim.Adam([neural.tensor, *neural.decoder_parameters()], lr=BSDF_FIT_LR)
+    g = torch.Generator().manual_seed(seed + 1)  # directions are drawn on the CPU, like the basis's training
+    loss = torch.zeros(())
+    for step in range(steps):
+        for group in opt.param_groups:
+            group["lr"] = BSDF_FIT_LR * 0.5 * (1 + math.cos(math.pi * step / steps))
+        idx = torch.randint(0, points.shape[0], (BSDF_FIT_BATCH,), generator=g).to(device)
+        v = want[idx]
+        target = PBRMaterial(v[:, :3], v[:, 3], v[:, 4])
+        n = idx.shape[0]
+        wo = uniform_hemisphere(n, g).to(device)
+        wi_peak, _ = target.sample(wo, torch.rand(n, generator=g).to(device), torch.rand(n, 2, generator=g).to(device))
+        wi_uniform = uniform_hemisphere(n, g).to(device)
+        use_peak = (torch.rand(n, generator=g) < 0.5).to(device).unsqueeze(-1) & (wi_peak[:, 2:3] > 1e-4)
+        wi = torch.where(use_peak, wi_peak, wi_uniform)
+        got = neural.gbuffer(points[idx], None)
+        material = NeuralMaterial(basis, got[:, :3], got[:, 3:])
+        cos_i = wi[:, 2]
+        with torch.no_grad():
+            log_want = log_target(target.eval(wi, wo), cos_i)
+        loss = (log_target(material.eval(wi, wo), cos_i) - log_want).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    return float(loss.detach())
+
+
 def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
           prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool = True, truth: Truth | None = None,
           progress: Progress | None = None, should_stop: Callable[[], bool] | None = None,
@@ -98,7 +141,15 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg)
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
+    if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
+        problem.exposure.start_at(first.exposure)
     start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps)
+    if config.pbr_bsdf_fit_steps > 0:
+        points, _ = problem.mesh.sample_surface(FIT_POINTS, seed=config.seed)
+        points = points.to(problem.params.tensor.device)
+        with torch.no_grad():
+            values = first.params.gbuffer(points, None)
+        refine_to_pbr_bsdf(problem.params, basis, points, values, config.seed, config.pbr_bsdf_fit_steps)
     if config.reg == "start" and config.lambda_reg > 0:  # weight 1 towards the start's own G-buffers
         points, uv = problem.mesh.sample_surface(config.reg_pool, seed=config.seed)
         points = points.to(problem.params.tensor.device)
