@@ -61,7 +61,10 @@ PRESET_TOLERANCE = 1e-3  # max |c2w difference| for a frame to count as a preset
 RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when no LMRM is available
 # What every extract preset runs after the PBR TTO (ExtractConfig.init "pbr"): the neural TTO anchored to its start,
 # the PBR solution in the basis. Clean PathTrace / Relight on benchmark objects 0-1, mean: PBR 30.2 / 24.5 dB,
-# this 30.5 / 25.0, no anchor 30.3 / 22.8, lambda 1 29.1 / 25.1 (docs/design-notes.md, item 26).
+# this 30.5 / 25.0, no anchor 30.3 / 22.8, lambda 1 29.1 / 25.1 (docs/design-notes.md, item 26). The start refined
+# in BSDF space (`pbr_bsdf_fit_steps`) begins at PBR's level where this one starts 9.7 dB below it (object 1's
+# metals), yet ends no better (29.8 / 24.6 vs 29.8 / 24.8 in the same run; the demo +0.42 dB over its fallback
+# vs +0.67), so it is not in the presets (docs/design-notes.md, item 27).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.1}
 # The allowed values of ExtractConfig's numeric fields (ExtractConfig.check; the job service's bounds).
 RANGES: dict[str, Range] = {

@@ -310,3 +310,20 @@ def test_bias_only_psnr_takes_the_reference_rows_noise_out():
     assert n == 1 and value == pytest.approx(30.0, abs=1e-9)
     res["v"]["psnr_pathtrace"]["a"] = 30.0  # as good as the reference: clamped, not infinite
     assert bias_only_psnr(res, "v")[0] == pytest.approx(60.0)
+
+
+def test_every_eval_table_is_described_and_valid():
+    """Each table of eval/variants.py has its page title, its metric columns and a row name per variant, and every
+    variant is a valid TTO config on the cpu preset (a table added in one place only fails here, not after an
+    hour of evaluation)."""
+    from neumatex_core.eval.suite import ROW_NAMES, TABLE_METRICS, TABLE_TITLES
+    from neumatex_core.eval.variants import TABLES, variant_config
+    from neumatex_core.tto.config import TTOConfig
+
+    for table, names in TABLES.items():
+        assert table in TABLE_TITLES and table in TABLE_METRICS, table
+        for name in names:
+            assert name in ROW_NAMES, (table, name)
+            config = variant_config(name, TTOConfig.preset("cpu"))
+            if config is not None:
+                config.check()

@@ -60,6 +60,10 @@ ROW_NAMES = {
     "pbr_1400": "PBR baseline, 1400 steps",
     "pbr_start_anchor_01": "neural from the PBR solution, anchored to it (lambda 0.1)",
     "pbr_start_anchor_1": "neural from the PBR solution, anchored to it (lambda 1)",
+    "pbr_start_anchor_01_bsdf": "neural from the PBR solution refined in BSDF space, anchored (lambda 0.1)",
+    "pbr_start_anchor_01_bsdf_v2": "the same in basis v2",
+    "pbr_start_bsdf_lr05": "neural from the PBR solution refined in BSDF space, anchored, neural lr x 1/4",
+    "pbr_start_bsdf_lr02": "neural from the PBR solution refined in BSDF space, anchored, neural lr x 1/10",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -78,7 +82,19 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                "tto_minutes"),
     "start_anchor": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
                      "psnr_relight_clean", "tto_minutes"),
+    "bsdf_start": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
+                   "tto_minutes"),
 }
+TABLE_TITLES = {
+    "table1": "Table 1: PBR baseline vs neural material",
+    "table2": "Table 2: design ablation (UV / triplane x LMRM init x uncertainty regulariser)",
+    "table3": "Table 3: TTO regularisation",
+    "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution",
+    "basis": "The neural basis (issue 14): default (v1) or v2, from the PBR solution",
+    "longer": "Longer TTO (issue 14): neural from the PBR solution vs PBR at equal steps",
+    "start_anchor": "Anchored to the PBR start (issue 14): relighting",
+    "bsdf_start": "The PBR start refined in BSDF space, and the neural phase's step size (issue 14)",
+}  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")
 
 
@@ -567,14 +583,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     ]
     for table in tables:
         metrics = tuple(m for m in TABLE_METRICS[table] if m not in CLEAN_METRICS or has_metric(res, m))
-        title = {"table1": "Table 1: PBR baseline vs neural material",
-                 "table2": "Table 2: design ablation (UV / triplane x LMRM init x uncertainty regulariser)",
-                 "table3": "Table 3: TTO regularisation",
-                 "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution",
-                 "basis": "The neural basis (issue 14): default (v1) or v2, from the PBR solution",
-                 "longer": "Longer TTO (issue 14): neural from the PBR solution vs PBR at equal steps",
-                 "start_anchor": "Anchored to the PBR start (issue 14): relighting",
-                 }[table]  # fmt: skip
+        title = TABLE_TITLES[table]
         lines += [f"## {title}", "", "| variant | n | " + " | ".join(LABELS[m] for m in metrics) + " |",
                   "|---|---|" + "---|" * len(metrics)]
         for name in [*TABLES[table], TRUTH]:

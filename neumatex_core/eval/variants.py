@@ -12,7 +12,8 @@ ones the LMRM's decoder was trained to produce). Longer (issue 14): the same at 
 steps) against the PBR baseline at 1400 steps (equal steps). Start anchor (issue 14): the neural TTO from the PBR
 solution held near its start (reg "start", weight 1, at two strengths), for relighting. BSDF start (issue 14): that
 default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`, tto/pbr_start.py
-`refine_to_pbr_bsdf`), in the default basis and in basis v2.
+`refine_to_pbr_bsdf`), in the default basis and in basis v2, and with the neural phase's learning rate at 1/4
+and 1/10 of the preset's (`neural_lr_scale`).
 """
 
 from __future__ import annotations
@@ -49,6 +50,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_anchor_01_bsdf": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300},
     "pbr_start_anchor_01_bsdf_v2": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                     "pbr_bsdf_fit_steps": 300, "basis": BASIS_V2},
+    "pbr_start_bsdf_lr05": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300,
+                            "neural_lr_scale": 0.25},
+    "pbr_start_bsdf_lr02": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300,
+                            "neural_lr_scale": 0.1},
     "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
@@ -61,7 +66,8 @@ TABLES: dict[str, list[str]] = {
     "basis": ["pbr", "ours_pbr_start_no_reg", "pbr_start_v2", "pbr_start_v2_decoder"],
     "longer": ["pbr", "pbr_1400", "ours_pbr_start_no_reg", "pbr_start_1000", "pbr_start_v2_1000"],
     "start_anchor": ["pbr", "ours_pbr_start_no_reg", "pbr_start_anchor_01", "pbr_start_anchor_1"],
-    "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2"],
+    "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
+                   "pbr_start_bsdf_lr05", "pbr_start_bsdf_lr02"],
 }
 
 

@@ -41,6 +41,7 @@ RANGES: dict[str, Range] = {
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
     "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_bsdf_fit_steps": Range(0, 100_000),
+    "neural_lr_scale": Range(0, 100, lo_open=True),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True)}  # fmt: skip
 
 
@@ -97,6 +98,9 @@ class TTOConfig:
     pbr_fit_steps: int = 1500
     # then Adam steps refining that start so its BSDF matches PBR's (tto/pbr_start.py `refine_to_pbr_bsdf`)
     pbr_bsdf_fit_steps: int = 0
+    # init "pbr": the neural phase's learning rate is lr x neural_lr_scale (it starts at a fitted solution, not at
+    # the LMRM's guess that lr was tuned for)
+    neural_lr_scale: float = 1.0
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # "" = the default neural basis; another installed basis (materials/data/bases/) by id. The LMRM predicts the

@@ -138,7 +138,8 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     if not first.finished:
         return first
     # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
-    neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg)
+    neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
+                            lr=config.lr * config.neural_lr_scale)
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one

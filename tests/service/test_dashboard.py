@@ -297,7 +297,8 @@ def shoot(page: Any, name: str, tmp: Path, height: int = 0) -> None:
     """A screenshot (the whole page, or its top `height` pixels) into docs/ with NEUMATEX_UPDATE_SCREENSHOTS=1."""
     target = (REPO / "docs" / name) if SCREENSHOTS else tmp / name
     clip = {"x": 0, "y": 0, "width": 1280, "height": height} if height else None
-    page.screenshot(path=str(target), full_page=True, clip=clip)
+    # generous timeout: a full-page capture of the framed report takes tens of seconds on 2 busy cores
+    page.screenshot(path=str(target), full_page=True, clip=clip, timeout=180_000)
     assert target.stat().st_size > 10_000
 
 
