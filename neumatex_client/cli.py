@@ -1,8 +1,9 @@
-"""`neumatex submit | jobs | job | cancel | retry | download` (also `python -m neumatex_client ...`): the job
+"""`neumatex submit | status | jobs | job | cancel | retry | download` (also `python -m neumatex_client ...`): the job
 service from a pipeline.
 
     neumatex submit CAPTURE... [--preset tiny|cpu|gpu] [--config JSON|@file.json] [--queue cpu|gpu]
                     [--webhook URL] [--wait [--out DIR] [--timeout S]] [--url URL] [--api-key KEY]
+    neumatex status [JOB...] [--json]
     neumatex jobs [--state STATE] [--limit N] [--json]
     neumatex job ID [--json]
     neumatex cancel ID... | retry ID [--from-stage STAGE] | download ID [--out DIR]
@@ -12,7 +13,9 @@ from --url, else $NEUMATEX_URL, else http://127.0.0.1:8000; the key from --api-k
 
 Exit codes (EXIT_*): 0 all went well (every job completed, with --wait); 1 a capture was refused or a job failed,
 was canceled or did not end within --timeout (each named on stderr; the others still ran); 2 bad usage (arguments,
-no key, a path that is not a capture); 3 the API key was refused; 4 the service could not be reached.
+no key, a path that is not a capture); 3 the API key was refused; 4 the service could not be reached. `status`
+with job ids: 0 when every one of them is completed, 1 when any failed or was canceled (named on stderr), 5 when
+none failed but some are still queued or running (a pipeline polls on 5).
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from neumatex_client.client import DEFAULT_URL, Client, Event
 from neumatex_client.errors import ApiError, AuthError, NeuMatExError, ServiceUnreachable, WaitTimeout
 from neumatex_client.models import Job
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_AUTH, EXIT_UNREACHABLE = 0, 1, 2, 3, 4
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_AUTH, EXIT_UNREACHABLE, EXIT_PENDING = 0, 1, 2, 3, 4, 5
 PRESETS = ("tiny", "cpu", "gpu")
 
 
@@ -191,6 +194,29 @@ def cmd_jobs(args: argparse.Namespace, client: Client) -> int:
     return EXIT_OK
 
 
+def cmd_status(args: argparse.Namespace, client: Client) -> int:
+    """One line per job (tab-separated: id, state, stage, progress, ETA or the error); without ids the queued and
+    running jobs. Exit code: see the module docstring."""
+    if not args.ids:
+        jobs = [j for state in ("running", "queued") for j in client.list_jobs(state=state, limit=500).items]
+    else:
+        jobs = [client.get_job(ident) for ident in args.ids]
+    if args.json:
+        print(json.dumps([json.loads(j.model_dump_json()) for j in jobs], indent=1))
+    else:
+        for j in jobs:
+            eta = f"ETA {j.eta_s:.0f} s" if j.eta_s is not None else ""
+            print(f"{j.id}\t{j.state}\t{j.stage}\t{j.progress:.0%}\t{j.error or eta}")
+    if not args.ids:
+        return EXIT_OK
+    bad = [j for j in jobs if j.state in ("failed", "canceled")]
+    for j in bad:
+        print(f"error: job {j.id} {j.state}" + (f": {j.error}" if j.error else ""), file=sys.stderr)
+    if bad:
+        return EXIT_FAILED
+    return EXIT_OK if all(j.state == "completed" for j in jobs) else EXIT_PENDING
+
+
 def cmd_job(args: argparse.Namespace, client: Client) -> int:
     job = client.get_job(args.id)
     if args.json:
@@ -244,7 +270,7 @@ def parser() -> argparse.ArgumentParser:
     common.add_argument("--api-key", default=None, help="API key (default: $NEUMATEX_API_KEY)")
     ap = argparse.ArgumentParser(prog="neumatex", description="NeuMatEx job service client",
                                  epilog="exit codes: 0 ok, 1 a capture or job failed, 2 usage, 3 API key refused, "
-                                 "4 service unreachable")  # fmt: skip
+                                 "4 service unreachable, 5 (status) jobs still queued or running")  # fmt: skip
     sub = ap.add_subparsers(dest="command", required=True)
     p = sub.add_parser("submit", parents=[common], help="upload captures and start an extraction job for each",
                        description="Upload each CAPTURE (folder with transforms.json, .zip, or a folder of those: "
@@ -260,6 +286,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, metavar="DIR", help="with --wait: download each asset zip here")
     p.add_argument("--timeout", type=float, default=None, metavar="S", help="with --wait: give up after S seconds")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p = sub.add_parser("status", parents=[common], help="one line per job; exit 0 all completed, 1 one failed or "
+                       "was canceled, 5 some still queued or running")
+    p.add_argument("ids", nargs="*", metavar="JOB", help="job ids (none: this tenant's queued and running jobs)")
+    p.add_argument("--json", action="store_true", help="the job records as JSON")
     p = sub.add_parser("jobs", parents=[common], help="list this tenant's jobs")
     p.add_argument("--state", choices=("queued", "running", "completed", "failed", "canceled"))
     p.add_argument("--capture", default=None, metavar="CAPTURE_ID")
@@ -281,8 +311,8 @@ def parser() -> argparse.ArgumentParser:
     return ap
 
 
-COMMANDS = {"submit": cmd_submit, "jobs": cmd_jobs, "job": cmd_job, "cancel": cmd_cancel, "retry": cmd_retry,
-            "download": cmd_download}
+COMMANDS = {"submit": cmd_submit, "status": cmd_status, "jobs": cmd_jobs, "job": cmd_job, "cancel": cmd_cancel,
+            "retry": cmd_retry, "download": cmd_download}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -345,6 +345,7 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
 
 # Job service client commands (neumatex_client/cli.py), handed over whole: imported only when one of them runs.
 CLIENT_COMMANDS = {"submit": "upload captures to the job service and start jobs (--wait, --out: the assets)",
+                   "status": "one line per job of the job service; the exit code says if all completed",
                    "jobs": "list the job service's jobs", "job": "show one job of the job service",
                    "cancel": "cancel jobs of the job service", "retry": "run a failed or canceled job again",
                    "download": "download a completed job's asset zip"}

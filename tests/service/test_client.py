@@ -204,6 +204,12 @@ def test_cli_submit_batch_wait_out(service: Service, worker: Proc, receiver: Rec
             (w,) = c.get_job(other).webhooks
             assert w.status == "delivered" and w.attempts == 1
 
+    # status: a line per job, exit 1 naming the failed one; 0 when all named jobs completed
+    st = _run_cli("status", *sorted(ids), failed_id, "--url", service.url, module="neumatex_core.cli")
+    assert st.returncode == 1 and f"error: job {failed_id} failed" in st.stderr, st.stdout + st.stderr
+    assert [ln.split("\t")[1] for ln in st.stdout.strip().splitlines()] == ["completed", "completed", "failed"]
+    st = _run_cli("status", *sorted(ids), "--url", service.url)
+    assert st.returncode == 0 and st.stdout.count("\tcompleted\t") == 2, st.stdout + st.stderr
     # jobs / job: exit 0 and the job named
     listed = _run_cli("jobs", "--url", service.url, "--state", "completed")
     assert listed.returncode == 0 and all(i in listed.stdout for i in ids), listed.stdout + listed.stderr
