@@ -310,3 +310,33 @@ def test_bsdf_refinement_recovers_what_the_encoder_conversion_loses(example, tru
     refine_to_pbr_bsdf(neural, basis, points, values, 0, 300)
     after = albedo_gap()
     assert after < 0.03, (before, after)
+
+
+def test_iterate_averaging_returns_the_tails_mean_and_resumes(example, truth_prediction, tmp_path):
+    """average_tail 0.5 over 8 steps: the result is the mean of the tensors after steps 5-8 (not the last one), and
+    a run stopped inside the tail and resumed from its checkpoint ends bit for bit where an uninterrupted one does."""
+    cfg = TTOConfig.preset("tiny", steps=8, pixels=64, spp=2, max_bounces=1, checkpoint_every=0, init="lmrm",
+                           average_tail=0.5)  # fmt: skip
+
+    def problem():
+        return build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                             perturbed(truth_prediction, 0.2), example.basis)  # fmt: skip
+
+    p = problem()
+    seen: list[torch.Tensor] = []
+    whole = optimise(p, cfg, progress=lambda step, total, row: seen.append(p.params.tensor.detach().clone()))
+    assert len(seen) == 8
+    mean = torch.stack(seen[4:]).mean(0)
+    assert torch.allclose(whole.params.tensor, mean, atol=1e-6)
+    assert not torch.allclose(whole.params.tensor, seen[-1], atol=1e-6)  # the iterates moved: a real average
+    calls = {"n": 0}
+
+    def stop_after_six() -> bool:
+        calls["n"] += 1
+        return calls["n"] > 6
+
+    checkpoint = tmp_path / "checkpoint.pt"
+    first = optimise(problem(), cfg, should_stop=stop_after_six, checkpoint=checkpoint)
+    assert not first.finished and first.steps_done == 6
+    second = optimise(problem(), cfg, checkpoint=checkpoint)
+    assert torch.equal(second.params.tensor, whole.params.tensor)

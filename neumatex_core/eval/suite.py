@@ -64,6 +64,8 @@ ROW_NAMES = {
     "pbr_start_anchor_01_bsdf_v2": "the same in basis v2",
     "pbr_start_bsdf_lr05": "neural from the PBR solution refined in BSDF space, anchored, neural lr x 1/4",
     "pbr_start_bsdf_lr02": "neural from the PBR solution refined in BSDF space, anchored, neural lr x 1/10",
+    "pbr_avg": "PBR baseline, mean iterate of the last half",
+    "pbr_start_anchor_01_avg": "neural from the PBR solution, anchored (lambda 0.1), mean iterate of each phase's tail",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -84,6 +86,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                      "psnr_relight_clean", "tto_minutes"),
     "bsdf_start": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
                    "tto_minutes"),
+    "averaging": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
+                  "tto_minutes"),
 }
 TABLE_TITLES = {
     "table1": "Table 1: PBR baseline vs neural material",
@@ -94,6 +98,7 @@ TABLE_TITLES = {
     "longer": "Longer TTO (issue 14): neural from the PBR solution vs PBR at equal steps",
     "start_anchor": "Anchored to the PBR start (issue 14): relighting",
     "bsdf_start": "The PBR start refined in BSDF space, and the neural phase's step size (issue 14)",
+    "averaging": "Iterate averaging: the mean of the last half of the steps as the result (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")
 

@@ -13,7 +13,8 @@ steps) against the PBR baseline at 1400 steps (equal steps). Start anchor (issue
 solution held near its start (reg "start", weight 1, at two strengths), for relighting. BSDF start (issue 14): that
 default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`, tto/pbr_start.py
 `refine_to_pbr_bsdf`), in the default basis and in basis v2, and with the neural phase's learning rate at 1/4
-and 1/10 of the preset's (`neural_lr_scale`).
+and 1/10 of the preset's (`neural_lr_scale`). Averaging (issue 14): PBR and that default with the result the mean
+iterate of the last half of each phase (`average_tail`).
 """
 
 from __future__ import annotations
@@ -54,6 +55,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
                             "neural_lr_scale": 0.25},
     "pbr_start_bsdf_lr02": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300,
                             "neural_lr_scale": 0.1},
+    "pbr_avg": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "average_tail": 0.5},
+    "pbr_start_anchor_01_avg": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "average_tail": 0.5},
     "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
@@ -68,6 +71,7 @@ TABLES: dict[str, list[str]] = {
     "start_anchor": ["pbr", "ours_pbr_start_no_reg", "pbr_start_anchor_01", "pbr_start_anchor_1"],
     "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
                    "pbr_start_bsdf_lr05", "pbr_start_bsdf_lr02"],
+    "averaging": ["pbr", "pbr_avg", "pbr_start_anchor_01", "pbr_start_anchor_01_avg"],
 }
 
 

@@ -41,7 +41,7 @@ RANGES: dict[str, Range] = {
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
     "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_bsdf_fit_steps": Range(0, 100_000),
-    "neural_lr_scale": Range(0, 100, lo_open=True),
+    "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True)}  # fmt: skip
 
 
@@ -101,6 +101,9 @@ class TTOConfig:
     # init "pbr": the neural phase's learning rate is lr x neural_lr_scale (it starts at a fitted solution, not at
     # the LMRM's guess that lr was tuned for)
     neural_lr_scale: float = 1.0
+    # the result is the mean of the field's tensor over this last fraction of the steps (0: the last iterate;
+    # tto/optimise.py `IterateAverage`)
+    average_tail: float = 0.0
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # "" = the default neural basis; another installed basis (materials/data/bases/) by id. The LMRM predicts the

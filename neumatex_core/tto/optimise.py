@@ -223,6 +223,25 @@ def make_optimizer(params: Parametrisation, config: TTOConfig,
     return torch.optim.Adam(groups, lr=config.lr)
 
 
+class IterateAverage:
+    """The uniform average of the field's tensor over the last `config.average_tail` of the steps (Polyak-Ruppert
+    averaging): each step's tensor carries the noise of its 8-spp gradient, and the mean of the iterates around the
+    optimum has less of it than the last one. `update(step, tensor)` after every step; `mean` (None before the tail
+    starts) replaces the tensor at the end. The decoder, where TTO trains it, is not averaged."""
+
+    def __init__(self, config: TTOConfig) -> None:
+        self.start = config.steps - round(config.average_tail * config.steps)
+        self.mean: torch.Tensor | None = None
+
+    def update(self, step: int, tensor: torch.Tensor) -> None:
+        """Fold in the tensor after `step` steps (1-based)."""
+        n = step - self.start
+        if n <= 0:
+            return
+        t = tensor.detach()
+        self.mean = t.clone() if self.mean is None or n == 1 else self.mean + (t - self.mean) / n
+
+
 def learning_rate(config: TTOConfig, step: int) -> float:
     """Cosine decay from lr to lr * lr_final over the steps."""
     t = min(step / max(config.steps, 1), 1.0)
@@ -236,18 +255,21 @@ def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.
 
 def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametrisation,
                      opt: torch.optim.Optimizer, history: list[dict[str, float]],
-                     cache_tensor: torch.Tensor | None, exposure: ExposureFit | None = None) -> None:
+                     cache_tensor: torch.Tensor | None, exposure: ExposureFit | None = None,
+                     average: torch.Tensor | None = None) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
                 "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history,
                 "decoder": None if params.decoder is None else params.decoder.state_dict(),
                 "cache_tensor": None if cache_tensor is None else cache_tensor.cpu(),
-                "exposure": None if exposure is None else exposure.log_scale.detach().cpu()}, tmp)  # fmt: skip
+                "exposure": None if exposure is None else exposure.log_scale.detach().cpu(),
+                "average": None if average is None else average.cpu()}, tmp)  # fmt: skip
     os.replace(tmp, path)
 
 
 def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation, opt: torch.optim.Optimizer,
-                     exposure: ExposureFit | None = None) -> tuple[int, list[dict[str, float]], torch.Tensor | None]:
+                     exposure: ExposureFit | None = None, average: IterateAverage | None = None,
+                     ) -> tuple[int, list[dict[str, float]], torch.Tensor | None]:
     try:
         state: dict[str, Any] = torch.load(path, map_location=params.tensor.device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - a torn or foreign file: start over rather than fail
@@ -262,6 +284,8 @@ def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation, opt
         with torch.no_grad():
             exposure.log_scale.copy_(state["exposure"])
     opt.load_state_dict(state["optimizer"])
+    if average is not None and state.get("average") is not None:
+        average.mean = state["average"].to(params.tensor)
     cache_tensor = state.get("cache_tensor")
     return int(state["step"]), list(state["history"]), None if cache_tensor is None else cache_tensor.to(params.tensor)
 
@@ -314,8 +338,9 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     opt = make_optimizer(params, config, exposure)
     step, history = 0, list[dict[str, float]]()
     cache_tensor: torch.Tensor | None = None
+    average = IterateAverage(config) if config.average_tail > 0 else None
     if checkpoint is not None and checkpoint.is_file():
-        step, history, cache_tensor = _load_checkpoint(checkpoint, config, params, opt, exposure)
+        step, history, cache_tensor = _load_checkpoint(checkpoint, config, params, opt, exposure, average)
     scene = Scene(problem.mesh, problem.envmap, params.field(), device=problem.device)
     tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1),
                                          spp=config.spp))  # fmt: skip
@@ -327,7 +352,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         if should_stop is not None and should_stop():
             if checkpoint is not None:
                 _save_checkpoint(checkpoint, config, step, params, opt, history,
-                                 None if cached is None else cached.tensor_at_build, exposure)  # fmt: skip
+                                 None if cached is None else cached.tensor_at_build, exposure,
+                                 None if average is None else average.mean)  # fmt: skip
             return TTOResult(params, history, step, False, time.perf_counter() - t0, problem.mesh,
                              None if exposure is None else exposure.values())  # fmt: skip
         g = step_generator(config, step, problem.device)
@@ -357,6 +383,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         if exposure is not None:
             exposure.project()
         step += 1
+        if average is not None:
+            average.update(step, params.tensor)
         mse = float(photo.detach())
         row = {"step": float(step), "loss": float(loss.detach()), "photo": mse, "reg": float(reg.detach()),
                "psnr": 10 * math.log10(1 / max(mse, 1e-12)), "lr": lr}  # fmt: skip
@@ -367,9 +395,15 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
             progress(step, config.steps, row)
         if checkpoint is not None and config.checkpoint_every and step % config.checkpoint_every == 0:
             _save_checkpoint(checkpoint, config, step, params, opt, history,
-                             None if cached is None else cached.tensor_at_build, exposure)  # fmt: skip
+                             None if cached is None else cached.tensor_at_build, exposure,
+                             None if average is None else average.mean)  # fmt: skip
+    if average is not None and average.mean is not None:  # the result is the tail's mean iterate
+        with torch.no_grad():
+            params.tensor.copy_(average.mean)
+        params.project()
     if checkpoint is not None:
         _save_checkpoint(checkpoint, config, step, params, opt, history,
-                         None if cached is None else cached.tensor_at_build, exposure)  # fmt: skip
+                         None if cached is None else cached.tensor_at_build, exposure,
+                         None if average is None else average.mean)  # fmt: skip
     return TTOResult(params, history, step, True, time.perf_counter() - t0, problem.mesh,
                      None if exposure is None else exposure.values())  # fmt: skip
