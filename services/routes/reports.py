@@ -6,9 +6,9 @@ Two ways in, both scoped to the job and its tenant (another tenant's job is a 40
 - `GET /v1/jobs/{id}/report-token/{token}/{path}` with a token minted by `POST /v1/jobs/{id}/report-token` (which
   needs the key). A frame or an <img> cannot send an Authorization header, and the report's images are relative
   URLs (`src='curves.png'`), so the token is a path segment: every file the page references resolves under the
-  same token. It is `base64url(job id, tenant id, expiry) . HMAC-SHA256` with a key derived from the service's
-  secret: nothing is stored, it opens only that job's report files (not the API), and it expires after
-  `REPORT_TOKEN_TTL_S`.
+  same token: a `PathTokens("report-token")` (services/path_tokens.py), `base64url(job id, tenant id, expiry) .
+  HMAC-SHA256` with a key derived from the service's secret: nothing is stored, it opens only that job's report
+  files (not the API), and it expires after `REPORT_TOKEN_TTL_S`.
 
 Only files under the asset's `report/` folder are served (`..`, absolute paths, NUL and links out of it are 404).
 Every response carries a Content-Security-Policy that lets the page show its own images and inline style and
@@ -19,11 +19,6 @@ frame loaded). Content types are fixed per suffix (HTML as UTF-8, PNG, JSON) wit
 
 from __future__ import annotations
 
-import base64
-import binascii
-import hashlib
-import hmac
-import time
 from datetime import UTC, datetime
 
 from fastapi import APIRouter
@@ -31,8 +26,8 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
 from services import crud
-from services.core.config import get_settings
 from services.errors import ApiError, not_found
+from services.path_tokens import PathTokens
 from services.routes.assets import _asset_key
 from services.routes.deps import SessionDep, TenantDep
 from services.storage import StorageError, get_storage
@@ -55,40 +50,23 @@ class ReportToken(BaseModel):
 
 
 # -- tokens ------------------------------------------------------------------------------------------------------
-def _key() -> bytes:
-    from services.webhooks import service_secret
-
-    return hmac.new(service_secret(), b"report-token", hashlib.sha256).digest()
-
-
-def _b64(data: bytes) -> str:
-    return base64.urlsafe_b64encode(data).rstrip(b"=").decode()
+TOKENS = PathTokens("report-token")
 
 
 def mint(job_id: str, tenant_id: str, ttl_s: float | None = None, at: float | None = None) -> tuple[str, int]:
     """A token for the job's report and its expiry (unix seconds)."""
-    expires = int((time.time() if at is None else at) + (get_settings().report_token_ttl_s if ttl_s is None
-                                                          else ttl_s))  # fmt: skip
-    payload = f"{job_id}\n{tenant_id}\n{expires}".encode()
-    return f"{_b64(payload)}.{_b64(hmac.new(_key(), payload, hashlib.sha256).digest())}", expires
+    return TOKENS.mint(job_id, tenant_id, ttl_s, at)
 
 
 def check(token: str, job_id: str) -> str:
     """The tenant id the token was minted for; 403 when it is malformed, forged, for another job or expired."""
-    bad = ApiError(403, "this report link is not valid; open the job page again for a new one")
-    body, _, sig = token.partition(".")
-    try:
-        payload = base64.urlsafe_b64decode(body + "=" * (-len(body) % 4))
-        given = base64.urlsafe_b64decode(sig + "=" * (-len(sig) % 4))
-    except (binascii.Error, ValueError):
-        raise bad from None
-    if not hmac.compare_digest(hmac.new(_key(), payload, hashlib.sha256).digest(), given):
-        raise bad
-    token_job, tenant_id, expires = payload.decode().split("\n")
-    if token_job != job_id:
+    tenant_id, problem = TOKENS.verify(token, job_id)
+    if problem == "other job":
         raise ApiError(403, f"this report link is for another job, not {job_id}")
-    if time.time() > int(expires):
+    if problem == "expired":
         raise ApiError(403, "this report link expired; open the job page again for a new one")
+    if tenant_id is None:
+        raise ApiError(403, "this report link is not valid; open the job page again for a new one")
     return tenant_id
 
 

@@ -8,8 +8,9 @@ served under a token so that a new browser tab (which sends no API key) can open
   mesh.bin, material.bin, basis.bin, env/mapN.bin). The page fetches its files by relative URLs, so they all resolve
   under the same token.
 
-The token is the report links' pattern (services/routes/reports.py): `base64url(job id, tenant id, expiry) .
-HMAC-SHA256` with its own key derived from the service's secret, valid for `report_token_ttl_s`; nothing is stored.
+The token is a `PathTokens("viewer-token")` (services/path_tokens.py, shared with the report links):
+`base64url(job id, tenant id, expiry) . HMAC-SHA256` with its own key derived from the service's secret, valid for
+`report_token_ttl_s`; nothing is stored.
 Any failure (forged, garbled, for another job, expired, another tenant's job, a file that is not the viewer's) is a
 404 that says nothing more. The page's maps are the shared CC0 maps ($NEUMATEX_SHARED/data/envmaps) when the service
 has them, else a built-in sky.
@@ -21,14 +22,9 @@ framed by this origin only. Content types are fixed per file with `nosniff`.
 
 from __future__ import annotations
 
-import base64
-import binascii
-import hashlib
-import hmac
 import os
 import shutil
 import threading
-import time
 import uuid
 from datetime import UTC, datetime
 from pathlib import Path
@@ -38,8 +34,8 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
 
 from services import crud
-from services.core.config import get_settings
 from services.errors import ApiError, not_found
+from services.path_tokens import PathTokens
 from services.routes.assets import _asset_key
 from services.routes.deps import SessionDep, TenantDep
 from services.storage import StorageError, get_storage
@@ -63,42 +59,17 @@ class ViewerToken(BaseModel):
 
 
 # -- tokens ------------------------------------------------------------------------------------------------------
-def _key() -> bytes:
-    from services.webhooks import service_secret
-
-    return hmac.new(service_secret(), b"viewer-token", hashlib.sha256).digest()
-
-
-def _b64(data: bytes) -> str:
-    return base64.urlsafe_b64encode(data).rstrip(b"=").decode()
+TOKENS = PathTokens("viewer-token")
 
 
 def mint(job_id: str, tenant_id: str, ttl_s: float | None = None, at: float | None = None) -> tuple[str, int]:
     """A token for the job's viewer and its expiry (unix seconds)."""
-    ttl = get_settings().report_token_ttl_s if ttl_s is None else ttl_s
-    expires = int((time.time() if at is None else at) + ttl)
-    payload = f"{job_id}\n{tenant_id}\n{expires}".encode()
-    return f"{_b64(payload)}.{_b64(hmac.new(_key(), payload, hashlib.sha256).digest())}", expires
+    return TOKENS.mint(job_id, tenant_id, ttl_s, at)
 
 
 def check(token: str, job_id: str) -> str | None:
     """The tenant id the token was minted for, or None when it is malformed, forged, for another job or expired."""
-    body, _, sig = token.partition(".")
-    try:
-        payload = base64.urlsafe_b64decode(body + "=" * (-len(body) % 4))
-        given = base64.urlsafe_b64decode(sig + "=" * (-len(sig) % 4))
-    except (binascii.Error, ValueError):
-        return None
-    if not hmac.compare_digest(hmac.new(_key(), payload, hashlib.sha256).digest(), given):
-        return None
-    try:
-        token_job, tenant_id, expires = payload.decode().split("\n")
-        expiry = int(expires)
-    except ValueError:
-        return None
-    if token_job != job_id or time.time() > expiry:
-        return None
-    return tenant_id
+    return TOKENS.verify(token, job_id)[0]
 
 
 # -- the bundle --------------------------------------------------------------------------------------------------
