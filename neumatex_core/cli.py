@@ -18,6 +18,7 @@ from neumatex_core.lmrm.train import TrainLMRMConfig
 from neumatex_core.materials.basis_training import TrainBasisConfig
 from neumatex_core.synth.config import SynthConfig
 from neumatex_core.synth.cycles import CyclesCaptureConfig, run_cycles_capture
+from neumatex_core.synth.random_pose import RandomPoseConfig, run_random_pose
 from neumatex_core.synth.sheets import SheetsConfig, run_sheets
 
 
@@ -335,6 +336,7 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int]]] = {
     "gallery": (GalleryConfig, run_gallery),
     "synth": (SynthConfig, run_synth),
     "synth-sheets": (SheetsConfig, run_sheets),
+    "synth-random-pose": (RandomPoseConfig, run_random_pose),
     "references": (ReferencesConfig, run_references),
     "cycles-capture": (CyclesCaptureConfig, run_cycles_capture),
     "train-lmrm": (TrainLMRMConfig, run_train_lmrm),
