@@ -88,9 +88,14 @@ def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: Ground
 def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, config: ExtractConfig,
                      render_views: Sequence[int] = tuple(range(PRESET_ORBIT_VIEWS)), render_spp: int | None = None,
                      render_bounces: int = 3, relight_views: Sequence[int] = (),
-                     figure_dir: str | Path | None = None, clean_spp_half: int = 32) -> dict[str, float]:
+                     figure_dir: str | Path | None = None, clean_spp_half: int = 32,
+                     capture_dir: str | Path | None = None) -> dict[str, float]:
     """The table numbers of one variant on one synthetic object (see the module docstring). `render_spp`
     defaults to the sample count the object's photos were made with (its synth.json / meta.json content).
+
+    capture_dir: the capture the extraction reads (stages and TTO photos); default the object itself (its 23 preset
+    views). E.g. its random-pose variant (`<object>/random_pose`, `neumatex synth-random-pose`): the scores stay the
+    object's (its views, references and ground truth), so the two are paired.
 
     relight_views: frames of each held-out lighting (`relight/K` of the object) to score as `psnr_relight`
     (mean over maps and frames, at the relight photos' own sample count); empty: none.
@@ -101,8 +106,9 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     psnr_relight_clean (`relight_views` of every held-out lighting), each with _raw / _mse / _se
     (`references.clean_metrics`)."""
     object_dir, work = Path(object_dir), Path(work)
+    source = object_dir if capture_dir is None else Path(capture_dir)
     for stage in ("validate", "prepare_views", "lmrm"):
-        run_stage(stage, object_dir, work, config)
+        run_stage(stage, source, work, config)
     if variant == TRUTH:
         return _evaluate_truth(object_dir, render_views, render_spp, render_bounces, relight_views, config.seed,
                                clean_spp_half)
@@ -114,7 +120,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
         render_spp = int(meta["content"]["spp"])
     gt = ground_truth(object_dir)
     tto = variant_config(variant, config.tto_config())
-    cap = load_capture(object_dir)
+    cap = load_capture(source)
     mesh = cap.load_mesh()
     env = harness_envmap(cap)
     t0, c0 = time.perf_counter(), time.process_time()
