@@ -70,14 +70,19 @@ def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor
 
 
 def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis: NeuralBasis, seed: int = 0,
-                     steps: int = FIT_STEPS) -> float:
-    """Fit the planes of `neural` to the PBR field `pbr` expressed in the basis (`fit_planes` at area samples)."""
+                     steps: int = FIT_STEPS, bsdf_steps: int = 0) -> float:
+    """Fit the planes of `neural` to the PBR field `pbr` expressed in the basis (`fit_planes` at area samples), then
+    (bsdf_steps > 0) refine them at the same samples so the BSDFs match (`refine_to_pbr_bsdf`); returns the
+    G-buffer fit's error."""
     points, _ = mesh.sample_surface(FIT_POINTS, seed=seed)
     points = points.to(neural.tensor.device)
     with torch.no_grad():
         v = pbr.gbuffer(points, None)
         rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
-    return fit_planes(neural, points, rho, latent, seed, steps)
+    error = fit_planes(neural, points, rho, latent, seed, steps)
+    if bsdf_steps > 0:
+        refine_to_pbr_bsdf(neural, basis, points, v, seed, bsdf_steps)
+    return error
 
 
 def refine_to_pbr_bsdf(neural: NeuralTriplane, basis: NeuralBasis, points: torch.Tensor, pbr_values: torch.Tensor,
@@ -144,13 +149,8 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
         problem.exposure.start_at(first.exposure)
-    start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps)
-    if config.pbr_bsdf_fit_steps > 0:
-        points, _ = problem.mesh.sample_surface(FIT_POINTS, seed=config.seed)
-        points = points.to(problem.params.tensor.device)
-        with torch.no_grad():
-            values = first.params.gbuffer(points, None)
-        refine_to_pbr_bsdf(problem.params, basis, points, values, config.seed, config.pbr_bsdf_fit_steps)
+    start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
+                                 config.pbr_bsdf_fit_steps)
     if config.reg == "start" and config.lambda_reg > 0:  # weight 1 towards the start's own G-buffers
         points, uv = problem.mesh.sample_surface(config.reg_pool, seed=config.seed)
         points = points.to(problem.params.tensor.device)

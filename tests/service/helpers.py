@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import io
 import json
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -122,3 +124,14 @@ def blank_masks(source: Path = EXAMPLE) -> dict[str, bytes]:
         Image.fromarray(np.zeros_like(np.asarray(Image.open(p)))).save(buf, format="PNG")
         out[p.relative_to(source).as_posix()] = buf.getvalue()
     return out
+
+
+def mint_in_service(service: Service, purpose: str, job_id: str, *grants: tuple[str, float]) -> list[str]:
+    """Path tokens of `purpose` ("report-token", "viewer-token"; services/path_tokens.py) minted with the running
+    service's own secret (its data folder) for (tenant id, seconds to live) each, e.g. one that has already expired."""
+    code = ("import sys; from services.path_tokens import PathTokens; t = PathTokens(sys.argv[1]); "
+            "[print(t.mint(sys.argv[2], g, ttl_s=float(s))[0]) for g, s in zip(sys.argv[3::2], sys.argv[4::2])]")
+    args = [str(x) for grant in grants for x in grant]
+    out = subprocess.run([sys.executable, "-c", code, purpose, job_id, *args], env=service.env, cwd=REPO, check=True,
+                         capture_output=True, text=True)  # fmt: skip
+    return out.stdout.split()

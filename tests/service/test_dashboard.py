@@ -33,7 +33,20 @@ from PIL import Image
 
 from services.cluster import REPO, wait_for
 
-from .helpers import EXAMPLE, KEY_A, KEY_B, TINY, Service, blank_masks, capture_zip, job, submit, upload, wait_state
+from .helpers import (
+    EXAMPLE,
+    KEY_A,
+    KEY_B,
+    TINY,
+    Service,
+    blank_masks,
+    capture_zip,
+    job,
+    mint_in_service,
+    submit,
+    upload,
+    wait_state,
+)
 
 CHROMIUM = "/usr/bin/chromium"  # Debian's (make sysdeps); Playwright downloads nothing
 KEY_A2 = "nmx_test_tenant_a_second_key_0123456789"  # a second key of tenant A, revoked by a test
@@ -97,17 +110,6 @@ def test_report_route_serves_the_pipelines_report(service: Service, done: dict[s
         assert anonymous.get(f"/v1/jobs/{jid}/report/index.html").status_code == 401
 
 
-def mint_in_service(service: Service, job_id: str, *grants: tuple[str, float]) -> list[str]:
-    """Tokens minted with the service's own secret (its data folder) for (tenant id, seconds to live) each, e.g. one
-    that has already expired."""
-    code = ("import sys; from services.routes.reports import mint; "
-            "[print(mint(sys.argv[1], t, ttl_s=float(s))[0]) for t, s in zip(sys.argv[2::2], sys.argv[3::2])]")
-    args = [str(x) for grant in grants for x in grant]
-    out = subprocess.run([sys.executable, "-c", code, job_id, *args], env=service.env, cwd=REPO, check=True,
-                         capture_output=True, text=True)  # fmt: skip
-    return out.stdout.split()
-
-
 def test_report_token_links(service: Service, done: dict[str, Any]) -> None:
     jid = done["id"]
     with service.client() as c:
@@ -135,7 +137,8 @@ def test_report_token_links(service: Service, done: dict[str, Any]) -> None:
         assert browser.get(f"/v1/jobs/{jid}/report-token/garbage/index.html").status_code == 403
         with service.client(KEY_B) as b:
             other_tenant = b.get("/v1/me").json()["tenant"]["id"]
-        expired, fresh, stranger = mint_in_service(service, jid, (tenant_id, -5), (tenant_id, 60), (other_tenant, 60))
+        grants = (tenant_id, -5), (tenant_id, 60), (other_tenant, 60)  # expired, fresh, another tenant
+        expired, fresh, stranger = mint_in_service(service, "report-token", jid, *grants)
         r = browser.get(f"/v1/jobs/{jid}/report-token/{expired}/index.html")
         assert r.status_code == 403 and "expired" in r.json()["error"]
         assert browser.get(f"/v1/jobs/{jid}/report-token/{fresh}/index.html").status_code == 200

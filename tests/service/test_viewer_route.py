@@ -5,8 +5,6 @@ are not the viewer's are all 404."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from collections.abc import Iterator
 from typing import Any
 
@@ -14,9 +12,7 @@ import httpx
 import numpy as np
 import pytest
 
-from services.cluster import REPO
-
-from .helpers import KEY_B, Service, capture_zip, submit, upload, wait_state
+from .helpers import KEY_B, Service, capture_zip, mint_in_service, submit, upload, wait_state
 
 
 @pytest.fixture(scope="module")
@@ -32,16 +28,6 @@ def done(service: Service) -> Iterator[dict[str, Any]]:
         yield job
     finally:
         worker.stop()
-
-
-def mint_in_service(service: Service, job_id: str, *grants: tuple[str, float]) -> list[str]:
-    """Viewer tokens minted with the service's own secret for (tenant id, seconds to live) each."""
-    code = ("import sys; from services.routes.viewer import mint; "
-            "[print(mint(sys.argv[1], t, ttl_s=float(s))[0]) for t, s in zip(sys.argv[2::2], sys.argv[3::2])]")
-    args = [str(x) for grant in grants for x in grant]
-    out = subprocess.run([sys.executable, "-c", code, job_id, *args], env=service.env, cwd=REPO, check=True,
-                         capture_output=True, text=True)  # fmt: skip
-    return out.stdout.split()
 
 
 def test_viewer_token_opens_the_page_and_its_bundle(service: Service, done: dict[str, Any]) -> None:
@@ -84,7 +70,8 @@ def test_viewer_token_opens_the_page_and_its_bundle(service: Service, done: dict
             assert browser.get(f"{base}/{bad}").status_code == 404, bad
         assert browser.get(f"/v1/jobs/{jid}/asset/files/manifest.json").status_code == 401
         forged = token[:-2] + ("AA" if not token.endswith("AA") else "BB")
-        expired, fresh, stranger = mint_in_service(service, jid, (tenant_id, -5), (tenant_id, 60), (other_tenant, 60))
+        grants = (tenant_id, -5), (tenant_id, 60), (other_tenant, 60)  # expired, fresh, another tenant
+        expired, fresh, stranger = mint_in_service(service, "viewer-token", jid, *grants)
         for t_bad in (forged, "garbage", "a.b", expired, stranger):
             r = browser.get(f"/v1/jobs/{jid}/viewer-token/{t_bad}/index.html")
             assert r.status_code == 404, (t_bad, r.status_code)
