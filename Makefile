@@ -34,6 +34,13 @@ sysdeps: $(SYSSTAMP)
 	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q redis-server; }
 	@command -v chromium >/dev/null || { SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q chromium; }
+	@# PostgreSQL (the deployed database; tests/service run against it too), docker-compose (`config` validates
+	@# docker-compose.yml in tests/test_deploy.py), wrk and hey (the load generators of bench/service.py).
+	@missing=""; for p in postgresql:/usr/lib/postgresql docker-compose:/usr/bin/docker-compose wrk:/usr/bin/wrk \
+	  hey:/usr/bin/hey; do \
+	  [ -e $${p#*:} ] || missing="$$missing $${p%%:*}"; done; \
+	  if [ -n "$$missing" ]; then SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q $$missing; fi
 
 # Blender Cycles as a Python module (bpy from PyPI) in its own venv, for captures rendered by an outside
 # renderer (tools/cycles_capture.py, bench/cycles_agreement.py). bpy pins its own numpy; nothing else goes in.

@@ -1,7 +1,7 @@
 """`neumatex submit | status | jobs | job | cancel | retry | download` (also `python -m neumatex_client ...`): the job
 service from a pipeline.
 
-    neumatex submit CAPTURE... [--preset tiny|cpu|gpu] [--config JSON|@file.json] [--queue cpu|gpu]
+    neumatex submit CAPTURE... [--preset PRESET] [--config JSON|@file.json] [--queue QUEUE]
                     [--webhook URL] [--wait [--out DIR] [--timeout S]] [--url URL] [--api-key KEY]
     neumatex status [JOB...] [--json]
     neumatex jobs [--state STATE] [--limit N] [--json]
@@ -35,7 +35,6 @@ from neumatex_client.errors import ApiError, AuthError, NeuMatExError, ServiceUn
 from neumatex_client.models import Job
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_AUTH, EXIT_UNREACHABLE, EXIT_PENDING = 0, 1, 2, 3, 4, 5
-PRESETS = ("tiny", "cpu", "gpu")
 
 
 class UsageError(Exception):
@@ -121,11 +120,32 @@ class Submission:
             self.set(self.bar.n / 100, postfix=str(d.get("state", "")))
 
 
+def accepted(client: Client, schema: str, field: str) -> tuple[str, ...]:
+    """The values the service accepts for `field` of its request body `schema` (the enum in its OpenAPI
+    document), so the choices are written once, on the server; () when the document does not say."""
+    try:
+        prop = client.request("GET", "/openapi.json").json()["components"]["schemas"][schema]["properties"][field]
+    except (ApiError, ValueError, KeyError, TypeError):
+        return ()
+    for option in (prop, *prop.get("anyOf", [])):
+        if isinstance(option, dict) and "enum" in option:
+            return tuple(str(v) for v in option["enum"])
+    return ()
+
+
+def _check_choice(client: Client, schema: str, field: str, value: str | None) -> None:
+    choices = accepted(client, schema, field) if value is not None else ()
+    if choices and value not in choices:
+        raise UsageError(f"--{field} {value!r} is not one the service offers (choose from {', '.join(choices)})")
+
+
 def cmd_submit(args: argparse.Namespace, client: Client) -> int:
     captures = expand_captures(args.captures)
     config = _config(args.config)
     if args.out and not args.wait:
         raise UsageError("--out needs --wait (assets are downloaded once their jobs complete)")
+    for field in ("preset", "queue"):  # before anything is uploaded
+        _check_choice(client, "JobCreate", field, getattr(args, field))
     show = not args.no_progress
     subs = [Submission(p, i, show) for i, p in enumerate(captures)]
     for sub in subs:
@@ -277,9 +297,11 @@ def parser() -> argparse.ArgumentParser:
                        "a batch) and start a job for it; with --wait follow every job with a progress bar, "
                        "download the assets into --out and exit 1 if any job failed (named on stderr).")
     p.add_argument("captures", nargs="+", metavar="CAPTURE")
-    p.add_argument("--preset", choices=PRESETS, default="cpu")
+    p.add_argument("--preset", default="cpu", help="the extraction preset (default cpu); an unknown one is refused "
+                   "before uploading, with the service's presets named")
     p.add_argument("--config", default=None, help="job config overrides: JSON object or @file.json")
-    p.add_argument("--queue", choices=("cpu", "gpu"), default=None, help="default: gpu for the gpu preset")
+    p.add_argument("--queue", default=None, help="where the job's lmrm and tto stages run (default: gpu for the "
+                   "gpu preset, else cpu; the other stages run on cpu)")
     p.add_argument("--webhook", default=None, metavar="URL", help="POSTed a signed JSON body when each job ends")
     p.add_argument("--exclude", action="append", metavar="GLOB", help="leave out matching paths of folders")
     p.add_argument("--wait", action="store_true", help="follow the jobs until they end")
@@ -303,8 +325,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("ids", nargs="+", metavar="ID")
     p = sub.add_parser("retry", parents=[common], help="run a failed or canceled job again")
     p.add_argument("id", metavar="ID")
-    p.add_argument("--from-stage", choices=("validate", "prepare_views", "lmrm", "tto", "export"), default=None,
-                   help="rerun from this stage (also on a completed job)")
+    p.add_argument("--from-stage", default=None, metavar="STAGE", help="rerun from this stage (also on a completed "
+                   "job); the service names its stages when given another")
     p = sub.add_parser("download", parents=[common], help="download a completed job's asset zip")
     p.add_argument("id", metavar="ID")
     p.add_argument("--out", default=".", metavar="DIR", help="folder for <job id>.zip (default: here)")

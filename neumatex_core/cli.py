@@ -389,7 +389,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     if args.command == "serve":
-        # The service is a separate layer over the core (DESIGN.md): run it as its own program, never import it here.
+        # The service is a layer over the core (docs/architecture.md section 1): run it as its own program, never
+        # import it here.
         import importlib.util
         import subprocess
 

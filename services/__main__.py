@@ -1,7 +1,8 @@
-"""`python -m services serve|api|worker|create-tenant|set-limits|reap` (also `make serve`).
+"""`python -m services serve|api|worker|beat|create-tenant|set-limits|reap` (also `make serve`).
 
-serve: starts redis-server (from apt) when nothing answers at NEUMATEX_REDIS_URL, the API (uvicorn) and one
-Celery worker on this machine with the embedded defaults (SQLite, local storage under data/service), creates a
+serve: starts redis-server (from apt) when nothing answers at NEUMATEX_REDIS_URL, the API (uvicorn), one Celery
+worker and Celery beat (which sends the reaper's task, services/reaper.py) on this machine with the embedded
+defaults (SQLite, local storage under data/service), creates a
 tenant with a printed API key unless NEUMATEX_BOOTSTRAP_API_KEY is set, and prints the dashboard URL. It
 supervises them (services/supervisor.py): a child that dies is restarted, and one that keeps dying stops
 everything with the reason printed.
@@ -54,10 +55,26 @@ def worker_command(queue: str, concurrency: int, name: str) -> list[str]:
             "--without-gossip", "--without-mingle"]  # fmt: skip
 
 
+def beat_command(data_dir: Path) -> list[str]:
+    """Celery beat sending the reaper's task (workers/celery_app.py), embedded in a one-process worker that takes
+    only the maintenance queue, so it also runs the reaps; its schedule file goes in `data_dir` (the service's data
+    folder, created here). Run exactly one per deployment."""
+    from services.queue import MAINTENANCE
+
+    data_dir.mkdir(parents=True, exist_ok=True)
+    return [sys.executable, "-m", "celery", "-A", "workers.celery_app:celery_app", "worker", "--beat", "-Q",
+            MAINTENANCE, "--concurrency", "1", "--pool", "solo", "-n", "beat@%h", "--loglevel", "WARNING",
+            "--without-gossip", "--without-mingle", "--schedule-filename",
+            str((data_dir / "celerybeat-schedule").resolve())]  # fmt: skip
+
+
 def api_command(host: str, port: int) -> list[str]:
+    """uvicorn serving the API: uvloop (uvicorn[standard]) for the event loop, but h11 as the HTTP parser, because
+    httptools answers a header with non-ASCII bytes (e.g. a mistyped API key) with a bare 400 before the app can
+    say what is wrong (a 401 naming the key)."""
     from services.core.config import get_settings
 
-    return [sys.executable, "-m", "uvicorn", "services.main:app", "--host", host, "--port", str(port),
+    return [sys.executable, "-m", "uvicorn", "services.main:app", "--host", host, "--port", str(port), "--http", "h11",
             "--log-level", "warning", "--timeout-graceful-shutdown", f"{get_settings().shutdown_grace_s:g}"]
 
 
@@ -90,9 +107,10 @@ def serve(args: argparse.Namespace) -> int:
     env = dict(os.environ)
     sup.add(Child("api", api_command(args.host, args.port), env))
     sup.add(Child("worker", worker_command("cpu,gpu" if args.gpu else "cpu", 1, "cpu@%h"), env))
+    sup.add(Child("beat", beat_command(st.data_dir), env))
     print(f"NeuMatEx service: dashboard http://{args.host}:{args.port}/  (API docs /docs)")
     print(f"API key (tenant '{st.bootstrap_tenant or 'local'}'): {key}   [saved in {key_file}]")
-    print("Ctrl-C stops the API, the worker" + (" and redis-server" if redis else "") + "; a child that dies is "
+    print("Ctrl-C stops the API, the worker, beat" + (" and redis-server" if redis else "") + "; a child that dies is "
           "restarted", flush=True)
     return sup.run()
 
@@ -125,7 +143,7 @@ def set_limits(name: str, storage_bytes: int | None, active_jobs: int | None) ->
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m services", description="NeuMatEx job service")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("serve", help="Redis (if needed), the API and one worker; prints the dashboard URL")
+    p = sub.add_parser("serve", help="Redis (if needed), the API, one worker and beat; prints the dashboard URL")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--gpu", action="store_true", help="the worker also takes the gpu queue")
@@ -137,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("worker", help="only a worker")
     p.add_argument("--queue", default="cpu", help="cpu, gpu or cpu,gpu")
     p.add_argument("--name", default="worker@%h")
+    sub.add_parser("beat", help="only Celery beat: sends the reaper's task every reaper_every_s (run one per "
+                   "deployment; a second one is harmless)")
     p = sub.add_parser("create-tenant", help="create a tenant and print its API key")
     p.add_argument("name")
     p = sub.add_parser("set-limits", help="set a tenant's storage quota and active-job limit (overrides the "
@@ -144,6 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("name", help="the tenant's name")
     p.add_argument("--storage-bytes", type=int, default=None)
     p.add_argument("--active-jobs", type=int, default=None)
+    sub.add_parser("migrate", help="bring the database (NEUMATEX_DATABASE_URL) to the newest schema migration; "
+                   "every process also does this at start")
     sub.add_parser("reap", help="one reaper pass (re-queue jobs of vanished workers, apply the retention)")
     args = ap.parse_args(argv)
     if args.cmd == "serve":
@@ -152,6 +174,10 @@ def main(argv: list[str] | None = None) -> int:
         os.execv(sys.executable, api_command(args.host, args.port))
     if args.cmd == "worker":
         os.execv(sys.executable, worker_command(args.queue, 1, args.name))
+    if args.cmd == "beat":
+        from services.core.config import get_settings
+
+        os.execv(sys.executable, beat_command(get_settings().data_dir))
     if args.cmd == "create-tenant":
         from services.core.db import session_scope
         from services.crud import create_tenant
@@ -162,12 +188,21 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.cmd == "set-limits":
         return set_limits(args.name, args.storage_bytes, args.active_jobs)
-    if args.cmd == "reap":
-        from services.cleanup import clean_work
-        from services.reaper import reap_once
+    if args.cmd == "migrate":
+        import logging
 
-        print("re-queued:", reap_once())
-        print("work folders removed (retention):", clean_work())
+        from services.core.db import migrate
+
+        logging.basicConfig(level=logging.INFO, format="%(message)s")  # alembic's "Running upgrade ..." lines
+        print("database at revision", migrate())
+        return 0
+    if args.cmd == "reap":
+        from services.reaper import reap_pass
+
+        out = reap_pass(clean=True)
+        print("re-queued:", out["sent"])
+        print("staging folders removed:", out["staging_removed"])
+        print("work folders removed (retention):", out["work_removed"])
         return 0
     return 2
 

@@ -15,12 +15,11 @@ from datetime import timedelta
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from neumatex_core.pipeline import is_done
+from neumatex_core.pipeline import DONE
 from services.core.config import get_settings
 from services.errors import ApiError
 from services.models import ACTIVE, TERMINAL, Capture, Event, Job, StageRun, WebhookDelivery, now
-from services.quota import folder_bytes
-from services.storage import get_storage
+from services.storage import StorageError, get_storage
 
 log = logging.getLogger("neumatex.cleanup")
 
@@ -28,8 +27,7 @@ log = logging.getLogger("neumatex.cleanup")
 def remove(key: str) -> int:
     """Delete a storage key (file or folder); returns the bytes freed."""
     storage = get_storage()
-    path = storage.path(key)
-    freed = folder_bytes(path) if path.is_dir() else path.stat().st_size if path.is_file() else 0
+    freed = storage.usage(key)
     storage.delete(key)
     return freed
 
@@ -69,11 +67,12 @@ def delete_capture(s: Session, cap: Capture) -> tuple[list[str], int]:
 
 
 def kept_stages(job: Job) -> list[str]:
-    """The job's finished stages whose outputs are still stored, in order, up to the first missing one."""
-    work = get_storage().path(f"work/{job.id}")
+    """The job's finished stages whose outputs are still stored (their done.json, written last), in order, up to
+    the first missing one."""
+    storage = get_storage()
     kept = []
     for stage in job.stages_done or []:
-        if not is_done(work, stage):
+        if not storage.is_file(f"work/{job.id}/{stage}/{DONE}"):
             break
         kept.append(stage)
     return kept
@@ -87,18 +86,22 @@ def clean_work() -> int:
         return 0
     from services.core.db import session_scope
 
-    root = get_storage().path("work")
-    if not root.is_dir():
+    try:
+        folders = get_storage().ages("work")  # job id -> last modified
+    except StorageError as exc:
+        log.warning("retention: cannot list the work folders: %s", exc)
+        return 0
+    if not folders:
         return 0
     cutoff = now() - timedelta(seconds=keep)
     removed = 0
     with session_scope() as s:
-        states = dict(s.execute(select(Job.id, Job.state).where(Job.id.in_([p.name for p in root.iterdir()]))).all())
+        states = dict(s.execute(select(Job.id, Job.state).where(Job.id.in_(list(folders)))).all())
         old = set(s.scalars(select(Job.id).where(Job.state.in_(TERMINAL), Job.finished_at < cutoff)))
-    for folder in root.iterdir():
-        orphan = folder.name not in states and time.time() - folder.stat().st_mtime > keep
-        if folder.name in old or orphan:
-            remove(f"work/{folder.name}")
+    for name, mtime in folders.items():
+        orphan = name not in states and time.time() - mtime > keep
+        if name in old or orphan:
+            remove(f"work/{name}")
             removed += 1
-            log.info("retention: removed the work folder of %s", folder.name)
+            log.info("retention: removed the work folder of %s", name)
     return removed

@@ -1,5 +1,6 @@
 """A whole service on this machine as subprocesses: redis-server on a free port (append-only file on, so it can be
-stopped and started again without losing messages), the API under uvicorn, and Celery workers, sharing one data
+stopped and started again without losing messages), the API under uvicorn, Celery workers and Celery beat (the
+reaper's schedule: `start_beat`, needed wherever a job must be re-queued after its worker died), sharing one data
 folder (SQLite + local storage). Used by tests/service and bench/service.py; each process runs in its own session,
 so `kill9()` reaches a worker's pool children too.
 """
@@ -20,7 +21,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 
 FAST = {"NEUMATEX_HEARTBEAT_S": "0.5", "NEUMATEX_STALE_AFTER_S": "4", "NEUMATEX_REAPER_EVERY_S": "1",
-        "NEUMATEX_REDISPATCH_AFTER_S": "3", "NEUMATEX_PROGRESS_EVERY_S": "0.1"}  # fmt: skip
+        "NEUMATEX_REDISPATCH_AFTER_S": "3", "NEUMATEX_PROGRESS_EVERY_S": "0.1",
+        "NEUMATEX_PARTIAL_STORE_EVERY_S": "1"}  # fmt: skip
 
 
 def free_port() -> int:
@@ -121,6 +123,7 @@ class Cluster:
                     "NEUMATEX_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1",
                     **(env or {})}  # fmt: skip
         self.api: Proc | None = None
+        self.beat: Proc | None = None
         self.workers: list[Proc] = []
         self._n = 0
 
@@ -136,8 +139,9 @@ class Cluster:
     def start_api(self, timeout: float = 120) -> None:
         import httpx
 
-        self.api = Proc([sys.executable, "-m", "uvicorn", "services.main:app", "--host", "127.0.0.1", "--port",
-                         str(self.port), "--log-level", "warning"], self.env, self.root / "api.log").start()
+        from services.__main__ import api_command
+
+        self.api = Proc(api_command("127.0.0.1", self.port), self.env, self.root / "api.log").start()
         wait_for(lambda: httpx.get(self.url + "/healthz", timeout=2).status_code == 200, timeout, "the API")
 
     def restart_api(self) -> None:
@@ -145,16 +149,30 @@ class Cluster:
         self.api.stop()
         self.start_api()
 
-    def start_worker(self, queue: str = "cpu") -> Proc:
+    def start_worker(self, queue: str = "cpu", env: dict[str, str] | None = None) -> Proc:
+        """A Celery worker (one pool process) on `queue`; `env` adds to or overrides the cluster's environment for
+        this worker alone (e.g. its own data and scratch folders)."""
         self._n += 1
         cmd = [sys.executable, "-m", "celery", "-A", "workers.celery_app:celery_app", "worker", "-Q", queue,
                "--concurrency", "1", "--prefetch-multiplier", "1", "-n", f"w{self._n}@%h", "--loglevel", "INFO",
                "--without-gossip", "--without-mingle", "--without-heartbeat"]  # fmt: skip
-        w = Proc(cmd, self.env, self.root / f"worker{self._n}.log").start()
+        w = Proc(cmd, {**self.env, **(env or {})}, self.root / f"worker{self._n}.log").start()
         self.workers.append(w)
         return w
 
+    def start_beat(self) -> Proc:
+        """Celery beat (once; later calls return the running one): sends the reaper's task to the maintenance queue
+        every reaper_every_s and runs it (a worker with embedded beat taking only that queue)."""
+        if self.beat is None or self.beat.proc is None or self.beat.proc.poll() is not None:
+            from services.__main__ import beat_command
+
+            cmd = beat_command(Path(self.env["NEUMATEX_DATA_DIR"]))
+            self.beat = Proc(cmd, self.env, self.root / "beat.log").start()
+        return self.beat
+
     def stop(self) -> None:
+        if self.beat is not None:
+            self.beat.stop()
         for w in self.workers:
             w.stop()
         if self.api is not None:

@@ -86,7 +86,3 @@ def build_config(preset: str, overrides: dict[str, Any] | JobConfig) -> ExtractC
     cfg = replace(cfg, tto=replace(cfg.tto, **tto))
     cfg.check()
     return cfg
-
-
-def default_queue(preset: str) -> str:
-    return "gpu" if preset == "gpu" else "cpu"

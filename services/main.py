@@ -16,6 +16,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from services.core.config import get_settings
 from services.core.db import get_engine, session_scope
+from services.fastpath import FastStatus
 from services.metrics import LATENCY, REQUESTS
 from services.routes import assets, captures, dashboard, health, jobs, reports, tenants, viewer
 
@@ -80,10 +81,9 @@ def create_app(reaper: bool = True) -> FastAPI:
                 ensure_tenant(s, st.bootstrap_tenant, st.bootstrap_api_key)
         threads: list[Any] = []
         if reaper:
-            from services.reaper import Reaper
             from services.webhooks import WebhookSender
 
-            threads = [Reaper(), WebhookSender()]
+            threads = [WebhookSender()]
             for thread in threads:
                 thread.start()
         yield
@@ -111,7 +111,8 @@ def create_app(reaper: bool = True) -> FastAPI:
         return JSONResponse({"error": f"the request does not match the API{first}", "problems": problems},
                             status_code=422)  # fmt: skip
 
-    app.add_middleware(Measure)
+    app.add_middleware(FastStatus)  # GET /v1/jobs/{id} from in-process caches (services/fastpath.py)
+    app.add_middleware(Measure)  # added last: the outermost, so it counts the fast path's requests too
 
     return app
 

@@ -49,7 +49,9 @@ class ServiceCollector(Collector):
             import redis
 
             client = redis.Redis.from_url(get_settings().redis_url, socket_timeout=1, socket_connect_timeout=1)
-            for q in ("cpu", "gpu"):
+            from services.queue import QUEUES
+
+            for q in QUEUES:
                 depth.add_metric([q], float(client.llen(q)))
             client.close()
         except Exception:  # broker down: the gauge is absent; /readyz says why

@@ -3,14 +3,13 @@
 tenant_limits row overrides them (`python -m services set-limits`); 0 or a negative value means no limit.
 
 Over the storage quota: 507 (Insufficient Storage, with the usage and what to delete); at the job limit: 429 with
-Retry-After. Capture and upload bytes come from the database; job bytes are measured on the storage.
+Retry-After. Capture and upload bytes come from the database; job bytes are measured on the storage (file sizes
+in the folder, object sizes in the bucket).
 """
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
@@ -53,29 +52,10 @@ def limits(s: Session, tenant_id: str) -> Limits:
     return Limits(_positive(storage), _positive(jobs))
 
 
-def folder_bytes(folder: Path) -> int:
-    """Bytes of the files below `folder` (0 when it does not exist; files vanishing meanwhile are skipped)."""
-    total = 0
-    stack = [folder]
-    while stack:
-        try:
-            entries = list(os.scandir(stack.pop()))
-        except (FileNotFoundError, NotADirectoryError):
-            continue
-        for e in entries:
-            try:
-                if e.is_dir(follow_symlinks=False):
-                    stack.append(Path(e.path))
-                elif e.is_file(follow_symlinks=False):
-                    total += e.stat(follow_symlinks=False).st_size
-            except FileNotFoundError:
-                pass
-    return total
-
-
 def job_bytes(job_id: str) -> int:
-    storage = get_storage()
-    return folder_bytes(storage.path(f"work/{job_id}")) + folder_bytes(storage.path(f"assets/{job_id}"))
+    """Bytes stored for the job: its work folder and its asset (object sizes on S3)."""
+    storage = get_storage()  # S3: one listing per folder (sizes come with the listing)
+    return sum(storage.sizes(f"work/{job_id}").values()) + sum(storage.sizes(f"assets/{job_id}").values())
 
 
 def usage(s: Session, tenant_id: str) -> Usage:

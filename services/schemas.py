@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from neumatex_core.pipeline import STAGES
 from services.jobconfig import JobConfig, PresetName
+from services.queue import QUEUES
+
+if TYPE_CHECKING:
+    StageName = str
+    QueueName = str
+else:  # the pipeline's stage order and the service's queues, written once (a 422 names the choices)
+    StageName = Literal[STAGES]
+    QueueName = Literal[QUEUES]
 
 
 class CaptureOut(BaseModel):
@@ -38,14 +47,14 @@ class JobCreate(BaseModel):
     capture_id: str = Field(max_length=100)
     preset: PresetName = "cpu"
     config: JobConfig = Field(default_factory=JobConfig, description="ExtractConfig field overrides; TTO under 'tto'")
-    queue: Literal["cpu", "gpu"] | None = None
+    queue: QueueName | None = None
     idempotency_key: str | None = Field(None, max_length=200, description="or the Idempotency-Key header")
     webhook_url: str | None = Field(None, max_length=2000, description="http(s) URL POSTed a signed JSON body when "
                                     "the job completes, fails or is canceled (docs/service.md, Webhooks)")
 
 
 class JobRetry(BaseModel):
-    from_stage: Literal["validate", "prepare_views", "lmrm", "tto", "export"] | None = None
+    from_stage: StageName | None = None
 
 
 class StageRunOut(BaseModel):

@@ -1,4 +1,4 @@
-"""The children of `python -m services serve` (redis-server when it started one, the API, the worker) under
+"""The children of `python -m services serve` (redis-server when it started one, the API, the worker, beat) under
 supervision: a child that dies is started again (after the rest of its process group, e.g. a worker's pool
 processes, is killed), with a pause that grows with each restart; a child that died more than `max_restarts`
 times within `window_s` stops everything, and the reason is printed. SIGTERM or SIGINT to the supervisor stops

@@ -1,12 +1,18 @@
 """Capture uploads: a zip streamed as the request body, a multi-file form, or a NodeODM-style session
-(init, files in one or more requests, commit). Everything lands in staging/<upload_id>/ first; a capture is
-created only after the whole capture passed `neumatex_core.capture` validation, by one rename into
-captures/<capture_id>/. Any failure removes the staging folder, so nothing half-written remains.
+(init, files in one or more requests, commit). The API receives and unpacks every upload in a local folder (the
+storage's `workspace`: staging/<upload_id>/ inside the storage folder for local storage, so the commit is one
+rename; under the scratch folder for S3); a capture is created only after the whole capture passed
+`neumatex_core.capture` validation, by committing that folder to captures/<capture_id>/ (services/storage.py).
+A session's files wait between its requests under the storage key staging/<upload_id>/files/. Any failure
+removes what the request wrote, so nothing half-written remains.
 
 Limits: the request body (max_upload_bytes, checked against Content-Length first and again on the bytes as they
 arrive, form files included: services/multipart.py) and the file count -> 413; the unpacked size, zip-slip,
 symlinks, zip bombs, bad file names -> 422 (the checks of `neumatex_core.capture.extract_zip`); file types outside
-allowed_suffixes -> 415; free space on the storage below min_free_bytes (or the disk full) -> 507.
+allowed_suffixes -> 415; free space on the disk of the local folder below min_free_bytes (or the disk full) -> 507.
+
+Speed (docs/service.md, "Storage"): the body is written once as it arrives (no spooling, no hashing: the zip's
+own CRCs are checked while unpacking), in large writes; the unpacked capture is moved into place by one rename.
 """
 
 from __future__ import annotations
@@ -28,9 +34,10 @@ from neumatex_core.capture.validate import inspect_capture
 from services.core.config import Settings
 from services.errors import ApiError
 from services.multipart import too_large
-from services.storage import LocalStorage
+from services.storage import Storage, local_files
 
 CHUNK = 1 << 20
+WRITE_BYTES = 4 << 20  # the body is written in pieces of about this size
 UNNAMED_ZIP = "the uploaded zip"
 
 
@@ -91,11 +98,12 @@ def upload_label(request: Request) -> str:
 async def stream_to_file(chunks: AsyncIterator[bytes], target: Path, limit: int,
                          on_bytes: Callable[[int], None]) -> int:
     """Write the body to `target`; 413 as soon as more than `limit` bytes arrived (the partial file is removed).
-    `on_bytes(n)` is called before n more bytes are written (the free-space check)."""
+    `on_bytes(n)` is called before n more bytes are written (the free-space check). The server hands over small
+    pieces (64 KiB); a WRITE_BYTES buffer turns them into few large writes."""
     target.parent.mkdir(parents=True, exist_ok=True)
     written = 0
     try:
-        with open(target, "wb") as out:
+        with open(target, "wb", buffering=WRITE_BYTES) as out:
             async for chunk in chunks:
                 written += len(chunk)
                 if written > limit:
@@ -143,16 +151,27 @@ def unpack_zip(zip_path: Path, dest: Path, settings: Settings, label: str) -> No
         zip_path.unlink(missing_ok=True)
 
 
-def merge_clashes(part: Path, files_dir: Path) -> tuple[list[str], list[str]]:
-    """The files of a session's new part that were uploaded already, and those whose name clashes with an earlier
-    file or folder as file versus folder (`x.png` then `x.png/y.png`, or the reverse)."""
-    new = [p.relative_to(part).as_posix() for p in part.rglob("*") if p.is_file()]
-    old = {p.relative_to(files_dir).as_posix() for p in files_dir.rglob("*") if p.is_file()} \
-        if files_dir.is_dir() else set()  # fmt: skip
+def merge_clashes(part: Path, old: set[str]) -> tuple[list[str], list[str]]:
+    """The files of a session's new part (a local folder) that were uploaded already (`old`: the names stored so
+    far), and those whose name clashes with an earlier file or folder as file versus folder (`x.png` then
+    `x.png/y.png`, or the reverse)."""
+    new = local_files(part)
     twice = sorted(set(new) & old)
     clashing = set(path_clashes(sorted(old) + new)) - set(twice)
     clashes = [n for n in new if n in clashing or any(p.as_posix() in clashing for p in PurePosixPath(n).parents)]
     return twice, clashes
+
+
+def merge_part(storage: Storage, part: Path, files_key: str) -> None:
+    """Add a session's checked part (a local folder, consumed) to its files under `files_key`: a rename per file
+    into the storage folder, or an upload per file to S3."""
+    files_dir = storage.local_path(files_key)
+    if files_dir is None:
+        storage.put_tree(part, files_key)
+        return
+    for rel in local_files(part):
+        (files_dir / rel).parent.mkdir(parents=True, exist_ok=True)
+        (part / rel).rename(files_dir / rel)
 
 
 def count_files(folder: Path) -> tuple[int, int]:
@@ -178,9 +197,9 @@ async def validate_folder(folder: Path, settings: Settings) -> tuple[Path, int]:
     return root, report.n_frames
 
 
-def commit_folder(storage: LocalStorage, root: Path, capture_id: str) -> str:
-    """Move a validated capture root into captures/<capture_id> (one rename); returns its key."""
+def commit_folder(storage: Storage, root: Path, capture_id: str) -> str:
+    """Move a validated capture root (a local folder, consumed) into captures/<capture_id> (one rename, or an
+    upload whose marker is the capture's database row, written after); returns its key."""
     key = f"captures/{capture_id}"
-    rel = root.relative_to(storage.root).as_posix()
-    storage.move(rel, key)
+    storage.commit_tree(root, key)
     return key

@@ -1,10 +1,10 @@
 """Webhooks: a job created with a `webhook_url` gets a signed JSON POST there each time it reaches a terminal state
 (completed, failed, canceled).
 
-The one hook is `crud.add_event`: every terminal transition (the worker completing or failing a job, a cancel, in
-the same transaction as the state change) writes a `state` event through it, and `enqueue` adds a
-`WebhookDelivery` row beside it when the job has a URL. The `WebhookSender` thread of each API process (next to the
-reaper) sends the due deliveries: claimed by a conditional UPDATE (one replica wins), POSTed without following
+The one hook is `lifecycle.add_event`: every terminal transition (the worker completing or failing a job, a cancel,
+in the same transaction as the state change) writes a `state` event through it, and `enqueue` adds a
+`WebhookDelivery` row beside it when the job has a URL. The `WebhookSender` thread of each API process sends the
+due deliveries: claimed by a conditional UPDATE (one replica wins), POSTed without following
 redirects, retried with exponential backoff (`webhook_backoff_s` doubling, at least the receiver's Retry-After on
 429/503) until a 2xx or `webhook_max_attempts`; every attempt is logged on the row and shown in the job's JSON.
 
@@ -115,7 +115,7 @@ def url_problem(url: str, allow_private: bool | None = None) -> str | None:
 
 # -- the hook -------------------------------------------------------------------------------------------------
 def enqueue(s: Session, job_id: str, state: str) -> None:
-    """Called by crud.add_event for every terminal `state` event, inside the transition's transaction."""
+    """Called by lifecycle.add_event for every terminal `state` event, inside the transition's transaction."""
     job = s.get(Job, job_id)
     if job is not None and job.webhook_url:
         s.add(WebhookDelivery(job_id=job_id, tenant_id=job.tenant_id, url=job.webhook_url, state=state,
@@ -233,7 +233,7 @@ def deliver_due(pool: ThreadPoolExecutor | None = None) -> list[str]:
 
 
 class WebhookSender(threading.Thread):
-    """Sends due webhook deliveries every webhook_poll_s (a thread of the API process, like the reaper)."""
+    """Sends due webhook deliveries every webhook_poll_s (a thread of each API process)."""
 
     def __init__(self) -> None:
         super().__init__(daemon=True, name="neumatex-webhooks")

@@ -15,7 +15,7 @@ Everything is built from our own objects so both renderers see identical data:
 - integrator: `path` with max_depth = bounces + 1 (Mitsuba counts the segment that reaches the emitter: its
   max_depth 2 is direct lighting only, our 1 bounce), Russian roulette pushed out of reach, emitters visible.
 
-Known behaviour difference (DESIGN.md section 4, "Measured pitfalls"): pixels where an interpolated (smooth)
+Known behaviour difference (docs/architecture.md section 4, "Measured pitfalls"): pixels where an interpolated (smooth)
 shading normal faces away from the camera while the geometric normal faces it (silhouettes of low-poly
 meshes). What Mitsuba does there depends on the BSDF wrapper (measured, see test_mitsuba_conventions.py):
 a single-sided BSDF returns black; inside `twosided` (what these references use) Mitsuba shades the "back

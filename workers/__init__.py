@@ -1,2 +1,2 @@
-"""Celery workers: one task per pipeline stage (neumatex_core.pipeline.run_stage), chained by each task sending the
-next; the job row in the database is the source of truth (services.models.Job)."""
+"""Celery workers: a thin wrapper running one pipeline stage per task (neumatex_core.pipeline.run_stage) and the
+reaper's task from beat; every change of a job's state goes through services.lifecycle (workers -> services only)."""

@@ -1,60 +1,37 @@
-"""The Celery app (Redis broker) and `dispatch`, which sends one stage of one job to its queue ("cpu" or "gpu").
-
-Delivery: acks_late + reject_on_worker_lost (a message is removed only after its stage ran), prefetch 1 (a worker
-holds one stage at a time), and a visibility timeout above the longest stage time limit (Redis re-delivers an
-unacknowledged message only after it). Results are not stored in Celery: the job row is the record.
+"""The workers' Celery app: the service's producer app (services/queue.py: broker, queues, delivery settings) extended
+with the task modules and the beat schedule of the reaper (services/reaper.py): `neumatex.reap` to the maintenance
+queue every reaper_every_s, and with clean=True every CLEAN_EVERY_S. The beat process (`python -m services beat`) is
+a worker with embedded beat that takes only that queue, so a reap never waits behind a long stage; a reap message
+not started within twice its interval expires (the next one supersedes it). Beat keeps its schedule file in the
+data folder.
 """
 
 from __future__ import annotations
 
-import logging
-
 from celery import Celery
-from kombu import Queue
 
+from services import queue
 from services.core.config import get_settings
+from services.reaper import CLEAN_EVERY_S
 
-TASK = "neumatex.stage"
-QUEUES = ("cpu", "gpu")
-log = logging.getLogger("neumatex.workers")
+
+def _reap_entry(every: float, clean: bool) -> dict[str, object]:
+    return {"task": queue.REAP_TASK, "schedule": every, "args": [clean],
+            "options": {"queue": queue.MAINTENANCE, "expires": max(2 * every, 10.0)}}  # fmt: skip
 
 
 def make_celery() -> Celery:
+    """The producer app with the worker's tasks and the beat schedule."""
     st = get_settings()
-    app = Celery("neumatex", broker=st.redis_url, include=["workers.tasks", "workers.presence"])
+    app = queue.producer()
     app.conf.update(
-        task_acks_late=True,
-        task_reject_on_worker_lost=True,
-        worker_prefetch_multiplier=1,
-        task_ignore_result=True,
-        task_serializer="json",
-        accept_content=["json"],
-        task_queues=[Queue(q) for q in QUEUES],
-        task_default_queue="cpu",
-        broker_connection_retry_on_startup=True,
-        broker_connection_max_retries=None,
-        broker_transport_options={"visibility_timeout": st.visibility_timeout_s, "socket_timeout": 5,
-                                  "socket_connect_timeout": 3},  # fmt: skip
-        worker_cancel_long_running_tasks_on_connection_loss=False,
-        worker_hijack_root_logger=False,
-        worker_send_task_events=False,
+        include=["workers.tasks", "workers.presence"],
+        beat_schedule={"reap": _reap_entry(st.reaper_every_s, False),
+                       "reap-and-clean": _reap_entry(CLEAN_EVERY_S, True)},
+        beat_schedule_filename=str((st.data_dir / "celerybeat-schedule").resolve()),
+        beat_max_loop_interval=min(st.reaper_every_s, 5.0),
     )
     return app
 
 
 celery_app = make_celery()
-
-
-def dispatch(job_id: str, stage: str, attempt: int, queue: str) -> bool:
-    """Send the stage; False (logged) when the broker cannot be reached (the reaper sends it again later)."""
-    st = get_settings()
-    limit = st.time_limit(stage)
-    try:
-        celery_app.send_task(TASK, args=[job_id, stage, attempt], queue=queue, soft_time_limit=limit,
-                             time_limit=limit + 30, retry=True,
-                             retry_policy={"max_retries": 3, "interval_start": 0.2, "interval_step": 0.5,
-                                           "interval_max": 1.0})  # fmt: skip
-        return True
-    except Exception as exc:  # broker down: the job row stays undispatched and the reaper retries
-        log.warning("could not send %s/%s to the broker: %s", job_id, stage, exc)
-        return False

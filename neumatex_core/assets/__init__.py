@@ -1,4 +1,4 @@
-"""Neural material asset packages (DESIGN.md section 8): build, write, read, export, render.
+"""Neural material asset packages (docs/architecture.md section 8): build, write, read, export, render.
 
 - `asset.py`: `MaterialAsset` and `asset_from_triplane` / `asset_from_textures` (unwrap, bake, PBR fit);
 - `package.py`: `write_asset` / `read_asset` (folder or zip; manifest, hashes, basis check);

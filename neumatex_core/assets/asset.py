@@ -1,9 +1,9 @@
 """The in-memory material asset and how one is built from a material field on a mesh.
 
-A `MaterialAsset` holds everything a package stores (DESIGN.md section 8): the object-space mesh with xatlas uvs,
-the neural field (a triplane with its decoders, or UV textures), the baked textures (rho_d + latent [R, R, 9]),
-the PBR fallback textures ([R, R, 5], 8-bit exact), previews, provenance, metrics and timings. `field(source)`
-gives the renderable MaterialField of any of its representations.
+A `MaterialAsset` holds everything a package stores (docs/architecture.md section 8): the object-space mesh with
+xatlas uvs, the neural field (a triplane with its decoders, or UV textures), the baked textures (rho_d + latent
+[R, R, 9]), the PBR fallback textures ([R, R, 5], 8-bit exact), previews, provenance, metrics and timings.
+`field(source)` gives the renderable MaterialField of any of its representations.
 
     asset = asset_from_triplane("vase", mesh, TriplaneMaterialField(triplane, decoder, basis), resolution=512)
     write_asset(asset, "vase.nmx.zip"); asset = read_asset("vase.nmx.zip")

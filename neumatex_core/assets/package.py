@@ -1,4 +1,4 @@
-"""Writing and reading material asset packages: a folder or a zip of the same files (DESIGN.md section 8).
+"""Writing and reading material asset packages: a folder or a zip of the same files (docs/architecture.md section 8).
 
     manifest.json                     format version, basis id + hash, field kind and shape, decoder ids,
                                       provenance, metrics, timings, every file's SHA-256 and size

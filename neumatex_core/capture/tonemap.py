@@ -1,7 +1,7 @@
 """The capture's tonemap T: linear HDR radiance -> display values, as an LDR photo stores them.
 
 T(x) = OETF(clip(exposure * x, 0, 1)), with OETF the piecewise sRGB transfer function (IEC 61966-2-1) or the
-identity. Photometric losses and render PSNR are taken after T (DESIGN.md section 2). The torch version is
+identity. Photometric losses and render PSNR are taken after T (docs/architecture.md section 2). The torch version is
 differentiable: the clip is a clamp and the sRGB power law never sees a zero base, so gradients stay finite.
 """
 

@@ -3,7 +3,7 @@
 `ground_truth(object_dir, views)` reads the preset views' position / base colour / latent buffers at their covered
 pixels; `truth_lookup` turns them into a function of surface points (nearest stored pixel: what reg="oracle"
 needs); `gbuffer_psnr` gives PSNR_BaseColor (rho_d) and PSNR_Latents ((l + 1) / 2) of any G-buffer function over
-those pixels (DESIGN.md section 2: covered pixels only).
+those pixels (docs/architecture.md section 2: covered pixels only).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """Image metrics. PSNR is taken over covered (foreground) pixels only, on display values in [0, 1]
-(DESIGN.md section 2): render PSNR after the capture's tonemap, PSNR_BaseColor on rho_d, PSNR_Latents on (l+1)/2.
+(docs/architecture.md section 2): render PSNR after the capture's tonemap, PSNR_BaseColor on rho_d, PSNR_Latents
+on (l+1)/2.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Material fields over a mesh's surface: triplane and UV-texture fields, and the small decoders that turn
-triplane features into material G-buffers (DESIGN.md sections 1, 5).
+triplane features into material G-buffers (docs/architecture.md sections 1, 5).
 
 - `Triplane` (triplane.py): learnable planes [3, C, R, R] over [-1, 1]^3 -> features [N, 3C];
 - `MaterialDecoder`, `UncertaintyDecoder`, `PBRDecoder` (decoders.py): features -> (rho_d, latent),

@@ -1,4 +1,4 @@
-"""The feature triplane (DESIGN.md section 5): three axis-aligned feature planes over the cube [-1, 1]^3.
+"""The feature triplane (docs/architecture.md section 5): three axis-aligned feature planes over the cube [-1, 1]^3.
 
 A point p = (x, y, z) reads one bilinearly interpolated C-vector from each plane and the three are concatenated:
 

@@ -1,6 +1,6 @@
 """Pinhole cameras in the nerfstudio convention and the preset views.
 
-Convention (DESIGN.md section 2): OpenGL camera axes (+X right, +Y up, -Z forward), a 4x4 camera-to-world
+Convention (docs/architecture.md section 2): OpenGL camera axes (+X right, +Y up, -Z forward), a 4x4 camera-to-world
 matrix, intrinsics fl_x, fl_y, cx, cy in pixels for an image of w x h pixels; pixel (i, j) covers
 [i, i+1] x [j, j+1] with j counted downwards from the top row.
 """

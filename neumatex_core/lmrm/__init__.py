@@ -1,5 +1,5 @@
-"""Large Material Reconstruction Model (DESIGN.md section 5): the 23 preset views of an object, its mesh, cameras
-and (optionally) lighting -> a feature triplane decoded into base colour, the 6-D latent and per-channel
+"""Large Material Reconstruction Model (docs/architecture.md section 5): the 23 preset views of an object, its mesh,
+cameras and (optionally) lighting -> a feature triplane decoded into base colour, the 6-D latent and per-channel
 log-variances, in one forward pass.
 
 - `load_lmrm(device) -> LMRM` (inference.py): the shipped checkpoint, checked against the neural basis;

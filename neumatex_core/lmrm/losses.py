@@ -1,4 +1,4 @@
-"""LMRM training losses (DESIGN.md section 5): L = w_mat L_mat + w_unc beta-NLL + w_pbr L_pbr.
+"""LMRM training losses (docs/architecture.md section 5): L = w_mat L_mat + w_unc beta-NLL + w_pbr L_pbr.
 
 - L_mat: mean squared error of the decoded material against the reference, in the metrics' units:
   0.5 (MSE(rho_d) + MSE((l + 1) / 2)), so each half is what PSNR_BaseColor / PSNR_Latents measure.

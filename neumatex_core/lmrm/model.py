@@ -1,4 +1,4 @@
-"""The LMRM network (DESIGN.md section 5): preset views + known geometry -> feature triplane -> decoders.
+"""The LMRM network (docs/architecture.md section 5): preset views + known geometry -> feature triplane -> decoders.
 
 Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
 

@@ -1,4 +1,4 @@
-"""LMRM training (`neumatex train-lmrm`, DESIGN.md section 5).
+"""LMRM training (`neumatex train-lmrm`, docs/architecture.md section 5).
 
 - Two-stage curriculum: steps < `pbr_steps` train on PBR targets through the PBR head only; later steps train
   L_mat + lambda_unc beta-NLL (+ `lambda_pbr` L_pbr, so the PBR head stays usable) (losses.py).

@@ -1,6 +1,6 @@
 """Analytic layered material: dust, fuzz, clear coat, specular GGX + haze and scatter over a Lambertian base.
 
-This is our stand-in for the procedural materials behind the paper's neural basis (DESIGN.md section 3, paper
+This is our stand-in for the procedural materials behind the paper's neural basis (docs/architecture.md section 3, paper
 eq. 1): f(wi, wo) = T rho_d / pi + f_spec(wi, wo), with 22 parameters per point (`PARAMETER_NAMES`, each in
 [0, 1], mapped to physical ranges below) and the Lambertian base colour rho_d [N, 3] kept separate.
 

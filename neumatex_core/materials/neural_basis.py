@@ -1,4 +1,5 @@
-"""The universal neural material basis (paper eq. 1-2, DESIGN.md section 3) and the NeuralMaterial it defines.
+"""The universal neural material basis (paper eq. 1-2, docs/architecture.md section 3) and the NeuralMaterial it
+defines.
 
 Four small MLPs, trained once on the analytic layered material (`neumatex train-basis`, see `basis_training`):
 

@@ -1,6 +1,6 @@
 """Preset views from arbitrary photographs on a known mesh: unstructured-lumigraph blending.
 
-The LMRM reads the 23 preset views (DESIGN.md section 7); a real capture has photos at other poses. For every
+The LMRM reads the 23 preset views (docs/architecture.md section 7); a real capture has photos at other poses. For every
 pixel of a preset view we find the surface point it sees (a G-buffer), project the point into every photo, keep
 the photos that see it (in the frame, in front of the camera, inside the photo's mask when there is one, and not
 occluded: a shadow ray from the point to the photo's centre), and blend the `k` photos whose viewing direction is

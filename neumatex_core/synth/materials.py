@@ -7,8 +7,8 @@ the surface). Each region draws a family of the prior (`materials.prior.FAMILIES
 parameters and two base colours; the Lambertian base colour rho_d at a point blends the two by a 3D procedural
 pattern t in [0, 1] (fractal noise, or marble: a sine of one axis perturbed by noise).
 
-The ground-truth neural material of a region is the basis encoder's latent of its parameters (DESIGN.md section
-3); `ProceduralMaterialField` returns NeuralMaterial(basis, rho_d, latent) at surface points (what the synthetic
+The ground-truth neural material of a region is the basis encoder's latent of its parameters (docs/architecture.md
+section 3); `ProceduralMaterialField` returns NeuralMaterial(basis, rho_d, latent) at surface points (what the synthetic
 images show), or the analytic LayeredMaterial(params, rho_d) for the out-of-basis renders.
 
 PBR G-buffer (for LMRM PBR pre-training): per region, the PBR material closest to the neural one is fitted by

@@ -16,7 +16,7 @@ same mesh. Kinds:
   per axis and twisted about +Y by up to 0.35 rad per unit height (mild deformation).
 
 Every shape is finally rotated uniformly at random and normalised so its bounding-box centre is the origin and
-its farthest vertex lies at `RADIUS` (inside the unit sphere, DESIGN.md section 2). Shading is smooth
+its farthest vertex lies at `RADIUS` (inside the unit sphere, docs/architecture.md section 2). Shading is smooth
 (area-weighted vertex normals).
 """
 

@@ -1,4 +1,4 @@
-"""Test-time optimisation with uncertainty-guided regularisation (DESIGN.md section 6, paper eq. 9-11).
+"""Test-time optimisation with uncertainty-guided regularisation (docs/architecture.md section 6, paper eq. 9-11).
 
 - `config.py`: `TTOConfig` (presets tiny / cpu / gpu; switches field, init, reg, material);
 - `data.py`: `PhotoSet` (random foreground pixel batches of the photos);

@@ -1,4 +1,5 @@
-"""`TTOConfig`: the schedule, sample counts and ablation switches of test-time optimisation (DESIGN.md section 6).
+"""`TTOConfig`: the schedule, sample counts and ablation switches of test-time optimisation (docs/architecture.md
+section 6).
 
 Presets: "cpu" (the default: a few minutes per object on 2 cores), "gpu" (quality: more steps, larger ray batches,
 more bounces) and "tiny" (tests: seconds). The switches select the paper's variants:

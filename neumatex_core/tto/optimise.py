@@ -1,4 +1,4 @@
-"""The TTO loop (DESIGN.md section 6): Adam on the material field's tensor only, random pixel batches of the
+"""The TTO loop (docs/architecture.md section 6): Adam on the material field's tensor only, random pixel batches of the
 photos rendered through the differentiable path tracer, an uncertainty-weighted anchor to the LMRM's G-buffers.
 
     problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis)

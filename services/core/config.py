@@ -7,11 +7,12 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-STAGE_NAMES = ("validate", "prepare_views", "lmrm", "tto", "export")
+from neumatex_core.pipeline import STAGES as STAGE_NAMES  # the stage order is the pipeline's (written once)
 
 
 class Settings(BaseSettings):
@@ -22,8 +23,19 @@ class Settings(BaseSettings):
     data_dir: Path = Path("data/service")
     database_url: str = ""  # default: sqlite:///<data_dir>/jobs.db; PostgreSQL: postgresql+psycopg://...
     redis_url: str = "redis://127.0.0.1:6379/0"
-    storage: str = "local"  # "local": a folder shared by the API and the workers (a network mount across hosts)
+    # storage (services/storage.py, docs/service.md "Storage"): "local", a folder shared by the API and the workers
+    # (a network mount across hosts), or "s3", an S3-compatible bucket (workers then need no shared disk)
+    storage: Literal["local", "s3"] = "local"
     storage_root: Path | None = None  # local storage folder (default <data_dir>/storage)
+    s3_endpoint_url: str = ""  # e.g. http://minio:9000; empty: AWS S3 of s3_region
+    s3_bucket: str = ""
+    s3_region: str = ""  # empty: boto3's default (AWS_DEFAULT_REGION, the profile)
+    s3_prefix: str = ""  # every key under this prefix in the bucket (one bucket, several services)
+    # credentials: the standard AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY (or a profile, an instance role) unless set
+    s3_access_key_id: str = ""
+    s3_secret_access_key: str = ""
+    scratch_dir: Path | None = None  # s3: local folder for uploads being unpacked and stage runs (default: TMPDIR)
+    partial_store_every_s: float = 30.0  # s3: a running stage's outputs so far (the TTO checkpoint) stored this often
 
     # uploads
     max_upload_bytes: int = 2 * 1024**3  # request body (the zip, or all form files together)
@@ -83,9 +95,9 @@ class Settings(BaseSettings):
         unknown = set(self.stage_time_limits) - set(STAGE_NAMES)
         if unknown:
             raise ValueError(f"stage_time_limits names unknown stages {sorted(unknown)}; stages: {STAGE_NAMES}")
-        if self.storage != "local":
-            raise ValueError(f"storage {self.storage!r} is not available: only 'local' (a folder, or a shared mount) "
-                             "is implemented; S3-compatible storage is planned (docs/service.md)")
+        if self.storage == "s3" and not self.s3_bucket:
+            raise ValueError("storage 's3' needs a bucket: set NEUMATEX_S3_BUCKET (and NEUMATEX_S3_ENDPOINT_URL for "
+                             "an S3-compatible server such as MinIO)")
         return self
 
     @property

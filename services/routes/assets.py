@@ -4,16 +4,18 @@ job's asset and work folder (its record stays)."""
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 
 from fastapi import APIRouter
-from fastapi.responses import FileResponse
+from fastapi.responses import FileResponse, StreamingResponse
+from starlette.responses import Response
 
 from services import cleanup, crud
 from services.errors import ApiError, not_found
 from services.redact import redact_data
 from services.routes.deps import SessionDep, TenantDep
 from services.schemas import AssetManifest, Deleted
-from services.storage import StorageError, get_storage
+from services.storage import NotStored, Storage, StorageError, check_key, get_storage
 
 router = APIRouter(tags=["assets"])
 
@@ -29,33 +31,71 @@ def _asset_key(s: SessionDep, tenant_id: str, job_id: str) -> str:
     return job.asset_key
 
 
+def stored_file(storage: Storage, folder: str, rel: str) -> str | None:
+    """The key of the stored file `rel` inside the folder key `folder`, or None when `rel` is not one: a bad or
+    climbing name, missing, a folder, or (local storage) a link that leads out of `folder`."""
+    try:
+        key = check_key(f"{folder}/{rel}")
+        if not key.startswith(check_key(folder) + "/"):
+            return None
+        local = storage.local_path(key)
+        if local is None:
+            return key if storage.is_file(key) else None
+        root = storage.local_path(folder)
+    except StorageError:
+        return None
+    return key if root is not None and local.is_relative_to(root) and local.is_file() else None  # resolved paths
+
+
+def file_response(storage: Storage, key: str, media_type: str | None = None,
+                  headers: Mapping[str, str] | None = None, filename: str | None = None) -> Response:
+    """The stored file `key` as a response: a FileResponse from the local folder (sendfile, ranges), else the
+    object streamed from S3 in 1 MiB chunks with its Content-Length (never whole in memory)."""
+    local = storage.local_path(key)
+    if local is not None:
+        if not local.is_file():
+            raise NotStored(f"storage key {key!r} is not a stored file")
+        return FileResponse(local, media_type=media_type, headers=headers, filename=filename)
+    import mimetypes
+    from urllib.parse import quote
+
+    size, chunks = storage.read_chunks(key)
+    out = {**(headers or {}), "Content-Length": str(size)}
+    if filename is not None:
+        out["Content-Disposition"] = f"attachment; filename*=utf-8''{quote(filename)}"
+    media = media_type or mimetypes.guess_type(key)[0] or "application/octet-stream"
+    return StreamingResponse(chunks, media_type=media, headers=out)
+
+
 @router.get("/jobs/{job_id}/asset", response_model=AssetManifest)
 def asset_manifest(job_id: str, s: SessionDep, tenant: TenantDep) -> AssetManifest:
     storage = get_storage()
     key = _asset_key(s, tenant.id, job_id) + "/asset"
-    files = storage.list(key)
-    manifest = redact_data(json.loads(storage.path(key + "/manifest.json").read_text()))
-    return AssetManifest(job_id=job_id, files=files, bytes=sum(storage.size(f"{key}/{f}") for f in files),
-                         manifest=manifest)  # fmt: skip
+    try:
+        manifest = redact_data(json.loads(storage.read_bytes(key + "/manifest.json")))
+    except NotStored:
+        raise ApiError(410, f"the asset of job {job_id} is missing from the storage") from None
+    sizes = storage.sizes(key)
+    return AssetManifest(job_id=job_id, files=sorted(sizes), bytes=sum(sizes.values()), manifest=manifest)
 
 
 @router.get("/jobs/{job_id}/asset.zip", response_class=FileResponse)
-def asset_zip(job_id: str, s: SessionDep, tenant: TenantDep) -> FileResponse:
-    path = get_storage().path(_asset_key(s, tenant.id, job_id) + "/asset.zip")
-    return FileResponse(path, media_type="application/zip", filename=f"{job_id}.zip")
+def asset_zip(job_id: str, s: SessionDep, tenant: TenantDep) -> Response:
+    storage = get_storage()
+    key = _asset_key(s, tenant.id, job_id) + "/asset.zip"
+    try:
+        return file_response(storage, key, "application/zip", filename=f"{job_id}.zip")
+    except NotStored:
+        raise ApiError(410, f"the asset of job {job_id} is missing from the storage") from None
 
 
 @router.get("/jobs/{job_id}/asset/files/{file_path:path}", response_class=FileResponse)
-def asset_file(job_id: str, file_path: str, s: SessionDep, tenant: TenantDep) -> FileResponse:
+def asset_file(job_id: str, file_path: str, s: SessionDep, tenant: TenantDep) -> Response:
     storage = get_storage()
-    key = _asset_key(s, tenant.id, job_id) + "/asset"
-    try:
-        path = storage.path(f"{key}/{file_path}")
-    except StorageError:
-        raise not_found("asset file", file_path) from None
-    if not path.is_file() or not path.is_relative_to(storage.path(key)):
+    key = stored_file(storage, _asset_key(s, tenant.id, job_id) + "/asset", file_path)
+    if key is None:
         raise not_found("asset file", file_path)
-    return FileResponse(path)
+    return file_response(storage, key)
 
 
 @router.delete("/jobs/{job_id}/asset", response_model=Deleted,

@@ -28,9 +28,10 @@ router = APIRouter(tags=["captures"])
 
 
 async def _receive(request: Request, dest: Path, budget: int) -> tuple[int, int]:
-    """Save a zip body (unpacked safely) or form files under dest as they arrive; returns (files, bytes received).
-    The free space is checked as bytes are written (507 when the storage is full)."""
-    st, root = get_settings(), get_storage().root
+    """Save a zip body (unpacked safely) or form files under the local folder dest as they arrive; returns (files,
+    bytes received). The free space of dest's disk is checked as bytes are written (507 when it is full)."""
+    st = get_settings()
+    root = dest.parent  # a workspace folder (services/storage.py): it exists
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     with uploads.disk_full_is_507(root, st.min_free_bytes):
         if ctype == "multipart/form-data":
@@ -52,21 +53,23 @@ async def _receive(request: Request, dest: Path, budget: int) -> tuple[int, int]
 
 
 async def _commit(tenant_id: str, folder: Path, name: str, received: int, staged: bool = False) -> Capture:
+    """Validate the local folder, check the quota, commit its capture root to captures/<id> and record it (the
+    record is the commit's marker: on S3 it is written after every object)."""
     st, storage = get_settings(), get_storage()
     root, frames = await uploads.validate_folder(folder, st)
     files, size = uploads.count_files(root)
     with session_scope() as s:  # the staged bytes of this upload count already when it is a session's
         quota.check_storage(s, tenant_id, size - received if staged else size)
     capture_id = new_id("cap")
-    key = uploads.commit_folder(storage, root, capture_id)
     try:
+        key = await anyio.to_thread.run_sync(uploads.commit_folder, storage, root, capture_id)
         with session_scope() as s:
             cap = Capture(id=capture_id, tenant_id=tenant_id, name=name or root.name, storage_key=key, files=files,
                           bytes=size, frames=frames)  # fmt: skip
             s.add(cap)
         return cap
     except BaseException:
-        storage.delete(key)
+        storage.delete(f"captures/{capture_id}")
         raise
 
 
@@ -78,7 +81,7 @@ async def create_capture(request: Request, response: Response, tenant: TenantDep
     uploads.check_content_length(request, st.max_upload_bytes)
     _check_quota(request, tenant.id)
     upload_id = new_id("upl")
-    base = storage.path(uploads.staging_key(upload_id))
+    base = storage.workspace(uploads.staging_key(upload_id))
     try:
         _files, received = await _receive(request, base / "files", st.max_upload_bytes)
         t0 = time.perf_counter()
@@ -125,12 +128,18 @@ def delete_capture(capture_id: str, s: SessionDep, tenant: TenantDep) -> Deleted
 
 
 # -- NodeODM-style sessions -----------------------------------------------------------------------------------
+def _files_key(upload_id: str) -> str:
+    return uploads.staging_key(upload_id) + "/files"
+
+
 @router.post("/uploads", status_code=201, response_model=UploadOut, summary="Start a multi-request upload")
 def init_upload(body: UploadInit, s: SessionDep, tenant: TenantDep) -> Upload:
     up = Upload(tenant_id=tenant.id, name=body.name)
     s.add(up)
     s.flush()
-    get_storage().path(uploads.staging_key(up.id) + "/files").mkdir(parents=True, exist_ok=True)
+    storage = get_storage()
+    if storage.local_path(_files_key(up.id)) is not None:  # S3: the files' keys appear with the files
+        storage.workspace(_files_key(up.id))
     s.commit()  # before the answer: the client's next request (its files) must find the session
     return up
 
@@ -150,13 +159,14 @@ async def upload_files(upload_id: str, request: Request, tenant: TenantDep) -> U
         budget = st.max_upload_bytes - up.bytes
     uploads.check_content_length(request, budget)
     _check_quota(request, tenant.id)
-    files_dir = storage.path(uploads.staging_key(upload_id) + "/files")
-    part = files_dir.parent / new_id("part")  # this request's files, merged only when all arrived
+    files_key = _files_key(upload_id)
+    base = storage.workspace(f"{uploads.staging_key(upload_id)}/{new_id('part')}")  # merged once all arrived
+    part = base / "files"
     try:
         files, received = await _receive(request, part, budget)
         if up.files + files > st.max_files:
             raise ApiError(413, f"the upload would hold {up.files + files} files; at most {st.max_files} are allowed")
-        twice, clashes = uploads.merge_clashes(part, files_dir)
+        twice, clashes = uploads.merge_clashes(part, set(storage.list(files_key)))
         if twice:
             more = f" (and {len(twice) - 1} more)" if len(twice) > 1 else ""
             raise ApiError(409, f"the file {shown_name(twice[0])}{more} was already uploaded",
@@ -165,12 +175,9 @@ async def upload_files(upload_id: str, request: Request, tenant: TenantDep) -> U
             raise ApiError(422, f"the uploaded file {shown_name(clashes[0])} clashes with an earlier file of the "
                            "upload: a name cannot be both a file and a folder",
                            [{"file": c, "message": "both a file and a folder"} for c in clashes[:50]])
-        for p in sorted(part.rglob("*")):
-            if p.is_file():
-                (files_dir / p.relative_to(part)).parent.mkdir(parents=True, exist_ok=True)
-                p.rename(files_dir / p.relative_to(part))
+        await anyio.to_thread.run_sync(uploads.merge_part, storage, part, files_key)
     finally:
-        shutil.rmtree(part, ignore_errors=True)
+        shutil.rmtree(base, ignore_errors=True)
     with session_scope() as s:
         up = _upload_of(s, tenant.id, upload_id)
         up.files += files
@@ -185,9 +192,19 @@ async def commit_upload(upload_id: str, tenant: TenantDep) -> Capture:
     with session_scope() as s:
         up = _upload_of(s, tenant.id, upload_id)
         name, received = up.name, up.bytes
-    base = storage.path(uploads.staging_key(upload_id))
-    cap = await _commit(tenant.id, base / "files", name, received, staged=True)  # on error the files stay staged
-    shutil.rmtree(base, ignore_errors=True)
+    files_key = _files_key(upload_id)
+    local = storage.local_path(files_key)
+    if local is not None:  # in place: the commit renames the capture root out of the session's folder
+        local.mkdir(parents=True, exist_ok=True)
+        cap = await _commit(tenant.id, local, name, received, staged=True)  # on error the files stay staged
+    else:
+        base = storage.workspace(f"{uploads.staging_key(upload_id)}/{new_id('commit')}")
+        try:
+            await anyio.to_thread.run_sync(storage.get_tree, files_key, base / "files")
+            cap = await _commit(tenant.id, base / "files", name, received, staged=True)
+        finally:
+            shutil.rmtree(base, ignore_errors=True)
+    storage.delete(uploads.staging_key(upload_id))
     with session_scope() as s:
         up2 = s.get(Upload, upload_id)
         if up2 is not None:
@@ -198,6 +215,6 @@ async def commit_upload(upload_id: str, tenant: TenantDep) -> Capture:
 @router.delete("/uploads/{upload_id}", status_code=204, summary="Abandon an upload")
 def delete_upload(upload_id: str, s: SessionDep, tenant: TenantDep) -> None:
     up = _upload_of(s, tenant.id, upload_id)
-    shutil.rmtree(get_storage().path(uploads.staging_key(upload_id)), ignore_errors=True)
+    get_storage().delete(uploads.staging_key(upload_id))
     s.delete(up)
     s.commit()  # before the answer: a request right after it must not find the session

@@ -1,13 +1,15 @@
 """Jobs: create (config + idempotency key; the config, device and queue checked here, the tenant's limits too),
 list (filters, paging), get, cancel, retry/restart, and the progress stream (server-sent events; each event's id is
 its row id, so a client reconnects with Last-Event-ID; streams end with an `event: shutdown` when the API stops).
-Records and events are shown without server paths (services/redact.py)."""
+State changes go through services/lifecycle.py. The stream reads new events from the database when the job's Redis
+channel wakes it (lifecycle.Wakeup), and every SAFETY_POLL_S in any case (Redis down: only then). Records and events
+are shown without server paths (services/redact.py)."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import re
+import time
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -16,17 +18,21 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import IntegrityError
 
-from services import cleanup, crud, fleet, quota, shutdown, webhooks
-from services.core.config import STAGE_NAMES
+from neumatex_core.pipeline import STAGES
+from services import cleanup, crud, fleet, lifecycle, quota, shutdown, webhooks
 from services.core.db import session_scope
 from services.errors import ApiError, not_found
-from services.jobconfig import build_config, default_queue, given
+from services.jobconfig import build_config, given
 from services.models import TERMINAL, Capture, Job, now
 from services.redact import redact_data, redact_text
 from services.routes.deps import Offset, SessionDep, TenantDep
 from services.schemas import JobCreate, JobOut, JobPage, JobRetry, StageRunOut, WebhookDeliveryOut
 
 router = APIRouter(tags=["jobs"])
+SAFETY_POLL_S = 5.0  # a stream reads the database at least this often (a missed wake-up, Redis down)
+SLICE_S = 0.2  # a stream checks for shutdown and a closed connection this often (no database read)
+KEEP_ALIVE_S = 15.0
+EVENTS_PAGE = 500  # events per database read
 
 
 def job_out(s: SessionDep, job: Job, runs: bool = True) -> JobOut:
@@ -54,14 +60,6 @@ def _get(s: SessionDep, tenant_id: str, job_id: str) -> Job:
     return job
 
 
-def _send(job_id: str, stage: str, attempt: int, queue: str) -> None:
-    from workers.celery_app import dispatch
-
-    if dispatch(job_id, stage, attempt, queue):
-        with session_scope() as s:
-            crud.mark_dispatched(s, job_id, attempt)
-
-
 @router.post("/jobs", status_code=201, response_model=JobOut, responses={200: {"description": "idempotent replay"}})
 def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: TenantDep,
                idempotency_key: Annotated[str | None, Header(max_length=200)] = None) -> JobOut:
@@ -83,7 +81,7 @@ def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: Tenan
         config = build_config(body.preset, body.config)
     except (ValueError, TypeError) as exc:
         raise ApiError(422, f"bad job config: {exc}") from None
-    queue = body.queue or default_queue(body.preset)
+    queue = lifecycle.job_queue(body.preset, body.queue)
     problem = fleet.device_problem(s, config.device, queue)
     if problem:
         raise ApiError(422, f"bad job config: {problem}")
@@ -105,9 +103,9 @@ def create_job(body: JobCreate, response: Response, s: SessionDep, tenant: Tenan
             raise ApiError(409, f"idempotency key {key!r} was used for a different request") from None
         response.status_code = 200
         return job_out(s, found)
-    crud.add_event(s, job.id, "state", state="queued", stage=job.stage, progress=0.0, message=job.message)
+    lifecycle.created(s, job)
     s.commit()
-    _send(job.id, "validate", job.attempt, job.queue)
+    lifecycle.dispatch(job.id, STAGES[0], job.attempt, job.queue)
     s.refresh(job)
     return job_out(s, job)
 
@@ -130,7 +128,7 @@ def get_job(job_id: str, s: SessionDep, tenant: TenantDep) -> JobOut:
 @router.post("/jobs/{job_id}/cancel", response_model=JobOut)
 def cancel_job(job_id: str, s: SessionDep, tenant: TenantDep) -> JobOut:
     job = _get(s, tenant.id, job_id)
-    if not crud.cancel(s, job):
+    if not lifecycle.cancel(s, job):
         raise ApiError(409, f"job {job_id} is {job.state}; only queued or running jobs can be canceled")
     s.commit()
     s.refresh(job)
@@ -146,20 +144,20 @@ def retry_job(job_id: str, s: SessionDep, tenant: TenantDep, body: JobRetry | No
         raise ApiError(409, f"job {job_id} is {job.state}; retry needs a failed or canceled job (or a completed "
                        "one with from_stage)")
     kept = cleanup.kept_stages(job)  # its work folder may have been deleted or reaped (retention)
-    if len(kept) < len(job.stages_done or []) and (from_stage is None or STAGE_NAMES.index(from_stage) > len(kept)):
-        from_stage = STAGE_NAMES[len(kept)]
+    if len(kept) < len(job.stages_done or []) and (from_stage is None or STAGES.index(from_stage) > len(kept)):
+        from_stage = STAGES[len(kept)]
     quota.check_new_job(s, tenant.id)
     if from_stage is not None:
         from services.storage import get_storage
 
         storage = get_storage()
-        for st in STAGE_NAMES[STAGE_NAMES.index(from_stage):]:
+        for st in STAGES[STAGES.index(from_stage):]:
             storage.delete(f"work/{job.id}/{st}")
-    got = crud.requeue(s, job, f"retry requested from {from_stage or 'the first unfinished stage'}", from_stage)
+    got = lifecycle.requeue(s, job, f"retry requested from {from_stage or 'the first unfinished stage'}", from_stage)
     if got is None:
         raise ApiError(409, f"job {job_id} changed meanwhile; try again")
     s.commit()
-    _send(job.id, got[1], got[0], job.queue)
+    lifecycle.dispatch(job.id, got[1], got[0], job.queue)
     s.refresh(job)
     return job_out(s, job)
 
@@ -184,33 +182,53 @@ async def job_events(job_id: str, request: Request, tenant: TenantDep,
 
     def poll(after: int) -> tuple[list[tuple[int, str, str]], str]:
         with session_scope() as s:
-            rows = crud.events_after(s, job_id, after)
+            rows = crud.events_after(s, job_id, after, EVENTS_PAGE)
             job = s.get(Job, job_id)
             return ([(e.id, e.kind, json.dumps({**redact_data(e.data), "kind": e.kind, "at": e.created_at.isoformat()}))
                      for e in rows], job.state if job else "canceled")  # fmt: skip
 
     async def stream() -> AsyncIterator[str]:
-        after, idle = start, 0.0
-        yield "retry: 1000\n\n"
-        while not await request.is_disconnected():
-            if shutdown.STOPPING.is_set():
-                yield f"event: shutdown\ndata: {json.dumps({'message': shutdown.MESSAGE})}\n\n"
-                return
-            rows, state = await anyio.to_thread.run_sync(poll, after)
-            for ident, kind, data in rows:
-                after = ident
-                yield f"id: {ident}\nevent: {kind}\ndata: {data}\n\n"
-            if not rows and state in TERMINAL:
-                yield f"event: end\ndata: {json.dumps({'state': state})}\n\n"
-                return
-            if rows:
-                idle = 0.0
-            else:
-                idle += 0.2
-                if idle >= 15:
-                    idle = 0.0
+        after = start
+        wake = await lifecycle.Wakeup.open(job_id)  # subscribed before the first read: no event is missed
+        try:
+            yield "retry: 1000\n\n"
+            due, next_poll, sent_at = True, 0.0, time.monotonic()
+            while not await request.is_disconnected():
+                if shutdown.STOPPING.is_set():
+                    yield f"event: shutdown\ndata: {json.dumps({'message': shutdown.MESSAGE})}\n\n"
+                    return
+                if due or time.monotonic() >= next_poll:
+                    rows, state = await anyio.to_thread.run_sync(poll, after)
+                    next_poll = time.monotonic() + SAFETY_POLL_S
+                    for ident, kind, data in rows:
+                        after = ident
+                        yield f"id: {ident}\nevent: {kind}\ndata: {data}\n\n"
+                    if not rows and state in TERMINAL:
+                        yield f"event: end\ndata: {json.dumps({'state': state})}\n\n"
+                        return
+                    if rows:
+                        sent_at = time.monotonic()
+                    # read again at once when the page was full, or the job ended (its last events may have been
+                    # committed between the two reads of `poll`)
+                    due = len(rows) >= EVENTS_PAGE or (bool(rows) and state in TERMINAL)
+                    if due:
+                        continue
+                if time.monotonic() - sent_at >= KEEP_ALIVE_S:
+                    sent_at = time.monotonic()
                     yield ": keep-alive\n\n"
-                await asyncio.sleep(0.2)
+                if wake is not None and not wake.broken:
+                    due = await wake.wait(SLICE_S)
+                    continue
+                await anyio.sleep(SLICE_S)  # no wake-ups (Redis down): the safety poll only
+                if time.monotonic() >= next_poll:  # subscribe again before that poll
+                    with anyio.CancelScope(shield=True):
+                        if wake is not None:
+                            await wake.close()
+                        wake = await lifecycle.Wakeup.open(job_id, timeout=0.5)
+        finally:
+            if wake is not None:
+                with anyio.CancelScope(shield=True):  # also when the client went away (the stream is cancelled)
+                    await wake.close()
 
     return StreamingResponse(stream(), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

@@ -20,17 +20,19 @@ frame loaded). Content types are fixed per suffix (HTML as UTF-8, PNG, JSON) wit
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from pathlib import PurePosixPath
 
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
+from starlette.responses import Response
 
 from services import crud
 from services.errors import ApiError, not_found
 from services.path_tokens import PathTokens
-from services.routes.assets import _asset_key
+from services.routes.assets import _asset_key, file_response, stored_file
 from services.routes.deps import SessionDep, TenantDep
-from services.storage import StorageError, get_storage
+from services.storage import NotStored, get_storage
 
 router = APIRouter(tags=["reports"])
 
@@ -71,18 +73,17 @@ def check(token: str, job_id: str) -> str:
 
 
 # -- files -------------------------------------------------------------------------------------------------------
-def _report_file(s: SessionDep, tenant_id: str, job_id: str, file_path: str) -> FileResponse:
+def _report_file(s: SessionDep, tenant_id: str, job_id: str, file_path: str) -> Response:
     storage = get_storage()
-    folder = _asset_key(s, tenant_id, job_id) + "/asset/report"
     file_path = file_path or "index.html"
-    try:
-        root, path = storage.path(folder), storage.path(f"{folder}/{file_path}")
-    except StorageError:
-        raise not_found("report file", file_path) from None
-    if not path.is_relative_to(root) or not path.is_file():  # resolved: links may not lead out of report/
+    key = stored_file(storage, _asset_key(s, tenant_id, job_id) + "/asset/report", file_path)
+    if key is None:  # also a link out of report/ (local storage: paths are resolved)
         raise not_found("report file", file_path)
-    media = TYPES.get(path.suffix.lower(), "application/octet-stream")
-    return FileResponse(path, media_type=media, headers=HEADERS)
+    media = TYPES.get(PurePosixPath(key).suffix.lower(), "application/octet-stream")
+    try:
+        return file_response(storage, key, media, HEADERS)
+    except NotStored:
+        raise not_found("report file", file_path) from None
 
 
 @router.post("/jobs/{job_id}/report-token", response_model=ReportToken,
@@ -96,13 +97,13 @@ def report_token(job_id: str, s: SessionDep, tenant: TenantDep) -> ReportToken:
 
 @router.get("/jobs/{job_id}/report/{file_path:path}", response_class=FileResponse,
             summary="A file of a completed job's report (index.html, its PNGs, history.json)")
-def report_file(job_id: str, file_path: str, s: SessionDep, tenant: TenantDep) -> FileResponse:
+def report_file(job_id: str, file_path: str, s: SessionDep, tenant: TenantDep) -> Response:
     return _report_file(s, tenant.id, job_id, file_path)
 
 
 @router.get("/jobs/{job_id}/report-token/{token}/{file_path:path}", response_class=FileResponse,
             summary="A file of a completed job's report, through a token from POST .../report-token")
-def report_file_by_token(job_id: str, token: str, file_path: str, s: SessionDep) -> FileResponse:
+def report_file_by_token(job_id: str, token: str, file_path: str, s: SessionDep) -> Response:
     tenant_id = check(token, job_id)
     if crud.job_of_tenant(s, tenant_id, job_id) is None:
         raise not_found("job", job_id)

@@ -27,18 +27,19 @@ import shutil
 import threading
 import uuid
 from datetime import UTC, datetime
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 from fastapi import APIRouter
 from fastapi.responses import FileResponse
 from pydantic import BaseModel, Field
+from starlette.responses import Response
 
 from services import crud
 from services.errors import ApiError, not_found
 from services.path_tokens import PathTokens
-from services.routes.assets import _asset_key
+from services.routes.assets import _asset_key, file_response, stored_file
 from services.routes.deps import SessionDep, TenantDep
-from services.storage import StorageError, get_storage
+from services.storage import NotStored, get_storage
 
 router = APIRouter(tags=["viewer"])
 
@@ -80,48 +81,46 @@ def _shared_envmaps() -> Path | None:
 
 
 def ensure_bundle(asset_key: str) -> str:
-    """The storage key of the asset's viewer bundle, built now if it is not there yet (atomically: a temporary
-    sibling renamed into place)."""
+    """The storage key of the asset's viewer bundle, built now if it is not there yet: in a local workspace, then
+    committed with its bundle.json last (the marker this function looks for: a rename on local storage)."""
     from neumatex_core.assets import read_asset
     from neumatex_core.viewer.web_bundle import BUNDLE, shared_envmaps, sky_envmap, write_bundle
 
     storage = get_storage()
     key = f"{asset_key}/viewer"
     with _build_lock:
-        if storage.exists(f"{key}/{BUNDLE}"):
+        if storage.is_file(f"{key}/{BUNDLE}"):
             return key
-        asset = read_asset(storage.path(f"{asset_key}/asset"))
         folder = _shared_envmaps()
         maps = shared_envmaps(folder) if folder is not None else []
         maps = maps or [sky_envmap()]
         default = "studio" if any(m.name == "studio" for m in maps) else maps[0].name
-        tmp = f"{asset_key}/.viewer-{uuid.uuid4().hex}"
+        tmp = storage.workspace(f"{asset_key}/.viewer-{uuid.uuid4().hex}")
         try:
-            write_bundle(asset, storage.path(tmp), maps, default, ENV_HEIGHT, static=False)
-            storage.delete(key)
-            storage.move(tmp, key)
+            with storage.local_tree(f"{asset_key}/asset") as asset_dir:
+                asset = read_asset(asset_dir)
+                write_bundle(asset, tmp / "viewer", maps, default, ENV_HEIGHT, static=False)
+            storage.commit_tree(tmp / "viewer", key, last=(BUNDLE,), replace=True)
         finally:
-            if storage.exists(tmp):
-                shutil.rmtree(storage.path(tmp), ignore_errors=True)
+            shutil.rmtree(tmp, ignore_errors=True)
     return key
 
 
-def _viewer_file(asset_key: str, file_path: str) -> FileResponse:
+def _viewer_file(asset_key: str, file_path: str) -> Response:
     from neumatex_core.viewer.web_bundle import STATIC_DIR
 
     file_path = file_path or "index.html"
     if file_path in STATIC:
         return FileResponse(STATIC_DIR / file_path, media_type=STATIC[file_path], headers=HEADERS)
     storage = get_storage()
-    key = f"{asset_key}/viewer"
-    media = DATA_TYPES.get(Path(file_path).suffix.lower())
-    try:
-        root, path = storage.path(key), storage.path(f"{key}/{file_path}")
-    except StorageError:
-        raise not_found("viewer file", file_path) from None
-    if media is None or not path.is_relative_to(root) or not path.is_file():
+    media = DATA_TYPES.get(PurePosixPath(file_path).suffix.lower())
+    key = stored_file(storage, f"{asset_key}/viewer", file_path) if media is not None else None
+    if key is None:
         raise not_found("viewer file", file_path)
-    return FileResponse(path, media_type=media, headers=HEADERS)
+    try:
+        return file_response(storage, key, media, HEADERS)
+    except NotStored:
+        raise not_found("viewer file", file_path) from None
 
 
 @router.post("/jobs/{job_id}/viewer-token", response_model=ViewerToken,
@@ -139,7 +138,7 @@ def viewer_token(job_id: str, s: SessionDep, tenant: TenantDep) -> ViewerToken:
 
 @router.get("/jobs/{job_id}/viewer-token/{token}/{file_path:path}", response_class=FileResponse,
             summary="The viewer page and its data, through a token from POST .../viewer-token")
-def viewer_file(job_id: str, token: str, file_path: str, s: SessionDep) -> FileResponse:
+def viewer_file(job_id: str, token: str, file_path: str, s: SessionDep) -> Response:
     tenant_id = check(token, job_id)
     job = crud.job_of_tenant(s, tenant_id, job_id) if tenant_id is not None else None
     if job is None or job.state != "completed" or not job.asset_key:

@@ -1,5 +1,5 @@
-"""Helpers of the service tests: the tests' cluster (services.cluster with fast heartbeats and small limits),
-capture zips, upload/submit/wait helpers and an SSE reader."""
+"""Helpers of the service tests: the tests' cluster (services.cluster with fast heartbeats and small limits) on
+SQLite or PostgreSQL, SQL on its database, capture zips, upload/submit/wait helpers and an SSE reader."""
 
 from __future__ import annotations
 
@@ -8,10 +8,14 @@ import json
 import subprocess
 import sys
 import zipfile
+from datetime import UTC, datetime, timedelta
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import httpx
+from sqlalchemy import Engine, create_engine, text
+from sqlalchemy.pool import NullPool
 
 from services.cluster import FAST, REPO, Cluster, wait_for
 
@@ -24,11 +28,16 @@ METRICS_TOKEN = "nmx_test_metrics_token_0123456789"
 
 
 class Service(Cluster):
-    """The tests' cluster: fast heartbeats and reaping, small upload limits."""
+    """The tests' cluster: fast heartbeats and reaping, small upload limits. Its database: `database_url` (e.g. a
+    PostgreSQL one from tests/service/postgres.py, passed as NEUMATEX_DATABASE_URL), else SQLite in its data
+    folder."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, database_url: str | None = None):
         (root / "tmp").mkdir(parents=True, exist_ok=True)  # the processes' TMPDIR, so tests can see what spools there
-        super().__init__(root, {**FAST, "NEUMATEX_MAX_UPLOAD_BYTES": str(8 * 1024**2),
+        self.database_url = database_url or f"sqlite:///{(root / 'data' / 'jobs.db').resolve()}"
+        self.database = "postgresql" if self.database_url.startswith("postgresql") else "sqlite"
+        super().__init__(root, {**FAST, "NEUMATEX_DATABASE_URL": self.database_url,
+                                "NEUMATEX_MAX_UPLOAD_BYTES": str(8 * 1024**2),
                                 "NEUMATEX_MAX_CAPTURE_BYTES": str(32 * 1024**2), "NEUMATEX_MAX_FILES": "200",
                                 "TMPDIR": str(root / "tmp"), "NEUMATEX_METRICS_TOKEN": METRICS_TOKEN,
                                 # webhooks to a receiver in the test (loopback), retried quickly
@@ -38,6 +47,28 @@ class Service(Cluster):
 
     def client(self, key: str = KEY_A) -> httpx.Client:
         return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {key}"}, timeout=60)
+
+
+@lru_cache(maxsize=8)
+def _engine(url: str) -> Engine:
+    # NullPool: every call opens and closes its connection, so none is held while the service's processes run.
+    return create_engine(url, poolclass=NullPool, **({"connect_args": {"timeout": 30}} if url.startswith("sqlite")
+                                                     else {}))  # fmt: skip
+
+
+def sql(service: Service, query: str, **params: Any) -> list[tuple[Any, ...]]:
+    """Run `query` on the service's database (SQLite or PostgreSQL) in its own transaction, committed; its rows
+    (none for a statement without result). Parameters are named, `:name` in the query, e.g.
+    sql(service, "UPDATE jobs SET state = :state WHERE id = :id", state="failed", id=job_id). Write portable SQL:
+    times as parameters (helpers.db_time), JSON columns as json.dumps(...) strings, booleans as true/false."""
+    with _engine(service.database_url).begin() as conn:
+        result = conn.execute(text(query), params)
+        return [tuple(row) for row in result] if result.returns_rows else []
+
+
+def db_time(seconds_ago: float = 0.0) -> datetime:
+    """A time as the service stores it (naive UTC, services/models.py now()), `seconds_ago` before now."""
+    return datetime.now(UTC).replace(tzinfo=None) - timedelta(seconds=seconds_ago)
 
 
 def capture_zip(source: Path = EXAMPLE, prefix: str = "teapot/", skip: tuple[str, ...] = ("photos", "gbuffers"),

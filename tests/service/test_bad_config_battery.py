@@ -9,7 +9,6 @@ service promises "a bad config is a 422, never a failed job".
 from __future__ import annotations
 
 import json
-import sqlite3
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -19,7 +18,7 @@ from typing import Any
 import httpx
 import pytest
 
-from .helpers import KEY_A, KEY_B, TINY, Service, capture_zip, upload
+from .helpers import KEY_A, KEY_B, TINY, Service, capture_zip, sql, upload
 
 Case = Callable[[httpx.Client, dict[str, Any]], httpx.Response]
 
@@ -115,8 +114,7 @@ CASES: dict[str, tuple[Case, int, tuple[str, ...]]] = {
 
 
 def job_rows(service: Service) -> int:
-    with sqlite3.connect(service.root / "data" / "jobs.db", timeout=30) as db:
-        return int(db.execute("SELECT COUNT(*) FROM jobs").fetchone()[0])
+    return int(sql(service, "SELECT COUNT(*) FROM jobs")[0][0])
 
 
 def listing(root: Path) -> set[str]:

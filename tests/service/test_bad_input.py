@@ -141,7 +141,8 @@ def test_bad_job_requests(service: Service) -> None:
     assert gpu["queue"] == "gpu" and gpu["state"] == "queued"  # the gpu preset goes to the gpu workers
     assert "no live worker takes the 'gpu' queue" in gpu["waiting"]  # flagged, not queued silently
     after = metrics(service)
-    for name in ('neumatex_queue_depth{queue="gpu"}', 'neumatex_jobs{state="queued"}'):
+    # the first stage (validate) of a gpu job runs on the cpu queue (services/lifecycle.py stage_queue)
+    for name in ('neumatex_queue_depth{queue="cpu"}', 'neumatex_jobs{state="queued"}'):
         assert after.get(name, 0.0) == before.get(name, 0.0) + 1.0, (name, before, after)
     assert client.post(f"/v1/jobs/{gpu['id']}/cancel").json()["state"] == "canceled"
     assert client.post(f"/v1/jobs/{gpu['id']}/retry", json={"from_stage": "nope"}).status_code == 422

@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import sqlite3
 import subprocess
 import sys
 import threading
@@ -28,7 +27,7 @@ from zip_bombs import bomb_zip
 from neumatex_core.imageio import write_image
 from services.cluster import REPO, Proc, free_port, wait_for
 
-from .helpers import EXAMPLE, KEY_A, KEY_B, TINY, Service, capture_zip, upload
+from .helpers import EXAMPLE, KEY_A, KEY_B, TINY, Service, capture_zip, sql, upload
 
 LIMIT = 8 * 1024**2  # the tests' max_upload_bytes (helpers.Service)
 FILES = sorted(p for p in EXAMPLE.rglob("*") if p.is_file() and p.relative_to(EXAMPLE).parts[0] not in
@@ -143,8 +142,8 @@ def world(service: Service, tmp_path_factory: pytest.TempPathFactory) -> dict[st
     asset = service.storage / "assets" / job_id / "asset"
     asset.mkdir(parents=True)
     (asset / "manifest.json").write_text("{}")
-    with sqlite3.connect(service.root / "data" / "jobs.db") as db:
-        db.execute("UPDATE jobs SET state='completed', asset_key=? WHERE id=?", (f"assets/{job_id}", job_id))
+    sql(service, "UPDATE jobs SET state = 'completed', asset_key = :key WHERE id = :id", key=f"assets/{job_id}",
+        id=job_id)
     return {"cap_a": cap_a["id"], "cap_b": cap_b["id"], "job": job_id, "tmp": tmp}
 
 

@@ -71,7 +71,7 @@ def worker(service: Service) -> Iterator[Proc]:
 
 
 @pytest.fixture(scope="module")
-def receiver() -> Iterator[Receiver]:
+def receiver(service: Service) -> Iterator[Receiver]:  # one per database: its first /flaky answer is a 500
     r = Receiver(fail_first=("/flaky",))
     yield r
     r.shutdown()

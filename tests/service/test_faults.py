@@ -1,18 +1,37 @@
-"""Surviving faults with real processes: kill -9 of the worker in the middle of TTO, Redis restarted mid-job (and
-a job submitted while it was down), the API restarted mid-job, and cancel during TTO followed by a retry that
-resumes on the freed worker. Stage runs come from the job record; done.json times and the TTO history from the
-stage outputs in storage."""
+"""Surviving faults with real processes: kill -9 of the worker in the middle of TTO (re-queued by the reaper on
+Celery beat, with the API stopped meanwhile so nothing else can do it), Redis restarted mid-job (and a job
+submitted while it was down, sent later by the reaper), the API restarted mid-job, and cancel during TTO followed by
+a retry that resumes on the freed worker. Stage runs come from the job record; done.json times and the TTO history
+from the stage outputs in storage."""
 
 from __future__ import annotations
 
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from .helpers import Service, capture_zip, job, sse_events, submit, upload, wait_for, wait_state
+import pytest
 
-STAGES = ["validate", "prepare_views", "lmrm", "tto", "export"]
+from neumatex_core.pipeline import STAGES
+
+from .helpers import Service, capture_zip, job, sql, sse_events, submit, upload, wait_for, wait_state
+
+
+@pytest.fixture(scope="module", autouse=True)
+def beat(service: Service) -> Iterator[None]:
+    """Celery beat: the reaper's schedule (re-queues jobs of vanished workers, sends undispatched ones)."""
+    proc = service.start_beat()
+    yield
+    proc.stop()
+    service.beat = None
+
+
+def job_row(service: Service, job_id: str) -> tuple[str, int, str | None]:
+    """(state, attempt, worker) straight from the database (while the API is down)."""
+    state, attempt, worker = sql(service, "SELECT state, attempt, worker FROM jobs WHERE id = :id", id=job_id)[0]
+    return str(state), int(attempt), worker
 
 
 def work_dir(service: Service, job_id: str) -> Path:
@@ -61,7 +80,18 @@ def test_kill9_worker_during_tto_another_worker_finishes(service: Service) -> No
         assert set(before) == {"validate", "prepare_views", "lmrm"}
         first.kill9()
         killed_at = time.monotonic()
+        assert service.api is not None
+        service.api.stop()  # only beat's reaper can re-queue it now
         second = service.start_worker()
+        try:
+            wait_for(lambda: job_row(service, j["id"])[1] == 2, 120, "the reaper (on beat) to re-queue the job")
+        except AssertionError:
+            beat_log = service.beat.tail() if service.beat else ""
+            print(f"--- beat.log\n{beat_log}\n--- {second.log.name}\n{second.tail()}")
+            raise
+        requeued_after = time.monotonic() - killed_at
+        service.start_api()
+    with service.client() as c:
         done = wait_state(c, j["id"], ("completed", "failed"), 240, service)
         assert_each_stage_once(service, done)
         runs = runs_by_stage(done)
@@ -78,7 +108,7 @@ def test_kill9_worker_during_tto_another_worker_finishes(service: Service) -> No
                    and e["stage"] == "tto" and "step" in e["metrics"]]  # fmt: skip
         assert resumed and resumed[0] > 1  # from the checkpoint, not from step 1
         assert sum(1 for e in events if e["event"] == "state" and e["state"] == "completed") == 1
-        print(f"re-queued and finished {time.monotonic() - killed_at:.1f} s after the kill")
+        print(f"re-queued {requeued_after:.1f} s and finished {time.monotonic() - killed_at:.1f} s after the kill")
     second.stop()
 
 

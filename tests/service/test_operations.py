@@ -23,7 +23,7 @@ import pytest
 
 from services.cluster import FAST, REPO, free_port, wait_for
 
-from .helpers import KEY_B, TINY, Service, capture_zip, upload
+from .helpers import KEY_B, TINY, Service, capture_zip, db_time, sql, upload
 
 KEY_C = "nmx_test_tenant_c_0123456789abcdefghij"
 KEY_D = "nmx_test_tenant_d_0123456789abcdefghij"
@@ -38,11 +38,6 @@ def services_cli(service: Service, *args: str, env: dict[str, str] | None = None
                        capture_output=True, text=True, timeout=120)  # fmt: skip
     assert r.returncode == 0, r.stderr
     return r.stdout
-
-
-def sql(service: Service, query: str, *params: Any) -> list[tuple[Any, ...]]:
-    with sqlite3.connect(service.root / "data" / "jobs.db", timeout=30) as db:
-        return list(db.execute(query, params).fetchall())
 
 
 def new_job(c: httpx.Client, capture_id: str) -> dict[str, Any]:
@@ -143,13 +138,13 @@ def test_retention_removes_old_work_folders_and_retry_starts_over(service: Servi
         assert d.post(f"/v1/jobs/{old['id']}/cancel").status_code == 200
         fake_outputs(service, old["id"], ("validate", "prepare_views"))
         fake_outputs(service, active["id"])
-        sql(service, "UPDATE jobs SET stages_done = ? WHERE id = ?", json.dumps(["validate", "prepare_views"]),
-            old["id"])
+        sql(service, "UPDATE jobs SET stages_done = :done WHERE id = :id",
+            done=json.dumps(["validate", "prepare_views"]), id=old["id"])
         work = service.storage / "work"
         (work / "job_orphan_old").mkdir()
         os.utime(work / "job_orphan_old", (time.time() - 3600, time.time() - 3600))
         (work / "job_orphan_new").mkdir()  # an orphan younger than the retention
-        sql(service, "UPDATE jobs SET finished_at = datetime('now', '-1 hour') WHERE id = ?", old["id"])
+        sql(service, "UPDATE jobs SET finished_at = :at WHERE id = :id", at=db_time(3600), id=old["id"])
         assert d.get("/v1/quota").json()["work_retention_s"] == 7 * 24 * 3600
         out = services_cli(service, "reap", env={"NEUMATEX_WORK_RETENTION_S": "600"})
         assert int(out.split("work folders removed (retention): ")[1].split()[0]) >= 2, out
@@ -171,9 +166,9 @@ def test_no_server_paths_in_job_records(service: Service, tenants: None) -> None
         assert d.post(f"/v1/jobs/{job['id']}/cancel").status_code == 200
         work = service.storage / "work" / job["id"]
         error = f"internal error in stage tto: FileNotFoundError: [Errno 2] No such file: '{work}/tto/x.pt'"
-        sql(service, "UPDATE jobs SET state = 'failed', error = ?, message = ?, metrics = ? WHERE id = ?", error,
-            f"reading {service.root}/elsewhere/capture.json", json.dumps({"tto": {"file": f"{REPO}/x/y.bin"}}),
-            job["id"])  # fmt: skip
+        sql(service, "UPDATE jobs SET state = 'failed', error = :error, message = :message, metrics = :metrics "
+            "WHERE id = :id", error=error, message=f"reading {service.root}/elsewhere/capture.json",
+            metrics=json.dumps({"tto": {"file": f"{REPO}/x/y.bin"}}), id=job["id"])  # fmt: skip
         for r in (d.get(f"/v1/jobs/{job['id']}"), d.get("/v1/jobs")):
             assert r.status_code == 200
             assert str(service.root) not in r.text and str(REPO) not in r.text, r.text[:2000]
@@ -310,7 +305,7 @@ def test_device_and_queue_are_checked_against_the_live_workers(service: Service,
         assert r.status_code == 422 and "device 'cuda' needs a live worker with CUDA" in r.json()["error"]
         # A live CUDA worker on the gpu queue (its presence row, as workers/presence.py writes it): accepted.
         sql(service, "INSERT INTO worker_nodes (name, queues, cuda, started_at, seen_at) VALUES "
-            "('gpu@test', '[\"gpu\"]', 1, datetime('now'), datetime('now'))")  # fmt: skip
+            "('gpu@test', :queues, true, :now, :now)", queues=json.dumps(["gpu"]), now=db_time())  # fmt: skip
         try:
             r = d.post("/v1/jobs", json=cuda)
             assert r.status_code == 201 and r.json()["waiting"] is None, r.text
