@@ -46,10 +46,11 @@ class ExtractCommandConfig:
 
 def lmrm_available(device: str = "auto") -> bool:
     """Whether the shipped LMRM checkpoint loads (present, intact, made for this basis and this code)."""
+    from neumatex_core.device import resolve_device
     from neumatex_core.lmrm import LMRMError, load_lmrm
 
     try:
-        load_lmrm("cuda" if device == "auto" and torch.cuda.is_available() else "cpu" if device == "auto" else device)
+        load_lmrm(resolve_device(device))
     except LMRMError:
         return False
     return True

@@ -161,9 +161,9 @@ class ExtractConfig:
         return replace(tto, reg="none") if tto.reg == "start" and tto.init != "pbr" else tto
 
     def torch_device(self) -> torch.device:
-        if self.device == "auto":
-            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-        return torch.device(self.device)
+        from neumatex_core.device import resolve_device
+
+        return resolve_device(self.device)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able (the TTO config nested), e.g. for a job record or a task message; `from_dict` inverts it."""

@@ -17,7 +17,7 @@ from typing import Any
 from sqlalchemy import JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String, Text, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column
 
-from services.core.db import Base
+from services.core.base import Base
 
 JOB_STATES = ("queued", "running", "completed", "failed", "canceled")
 ACTIVE = ("queued", "running")

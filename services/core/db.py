@@ -14,8 +14,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Connection, Engine, create_engine, event, inspect, text
-from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
+from sqlalchemy.orm import Session, sessionmaker
 
+from services.core.base import Base
 from services.core.config import get_settings
 
 if TYPE_CHECKING:
@@ -27,10 +28,6 @@ MIGRATIONS = Path(__file__).resolve().parents[1] / "migrations"  # alembic's scr
 INITIAL_REVISION = "0001"  # the schema that Base.metadata.create_all made before there were migrations
 # The key of the PostgreSQL advisory lock held while migrating (any constant bigint: "NMXD" then 1).
 PG_MIGRATION_LOCK = 0x4E4D5844_00000001
-
-
-class Base(DeclarativeBase):
-    pass
 
 
 def make_engine(url: str) -> Engine:

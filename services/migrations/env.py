@@ -12,7 +12,7 @@ from alembic import context
 from sqlalchemy import Connection
 
 from services import models  # noqa: F401  (registers the tables on Base.metadata)
-from services.core.db import Base
+from services.core.base import Base
 
 config = context.config
 
