@@ -7,6 +7,7 @@ BaseColor and Latents against its ground truth.
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/random_pose_e2e.py [--data data/benchmark-test]
         [--objects first:2] [--variants pbr_start_anchor_01,pbr] [--workers 2]
+    .venv/bin/python bench/random_pose_e2e.py --summarise    # the table over every object measured so far
 
 Prints each metric from random-pose photos, from the preset views and the difference (dB) per object and the mean;
 appends a JSON line to bench/results/random_pose_e2e.jsonl. Needs the objects' references (`neumatex references`)
@@ -55,7 +56,12 @@ def main() -> int:
     parser.add_argument("--variants", default="pbr_start_anchor_01,pbr")
     parser.add_argument("--work", default="runs/bench-random-pose-e2e")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--summarise", action="store_true",
+                        help="print the table over every object in bench/results/random_pose_e2e.jsonl and stop")
     args = parser.parse_args()
+    if args.summarise:
+        return summarise(Path(__file__).resolve().parent / "results" / "random_pose_e2e.jsonl",
+                         args.variants.split(",")[0])
     data = Path(args.data)
     objects = select_objects(data, args.objects)
     variants = args.variants.split(",")
@@ -75,6 +81,36 @@ def main() -> int:
                       f"views {r[f'preset/{variant}'][m]:.2f} dB")  # fmt: skip
             print(f"  mean random-pose - preset: {np.mean(diffs):+.2f} dB over {len(diffs)} objects", flush=True)
     print(f"appended to {write_result('random_pose_e2e', {'variants': variants, 'rows': rows, 'mean_diff': summary})}")
+    return 0
+
+
+def summarise(results: Path, variant: str) -> int:
+    """The table over every object measured so far (the latest row per object in `results`): per metric the
+    mean of random-pose and of preset views, and the paired difference with its standard error over objects."""
+    import json
+
+    latest: dict[str, dict[str, Any]] = {}
+    for line in results.read_text().splitlines():
+        for row in json.loads(line).get("rows", []):
+            if f"random_pose/{variant}" in row and f"preset/{variant}" in row:
+                latest[row["object"]] = row
+    if not latest:
+        print(f"{results}: no rows for variant {variant!r}")
+        return 1
+    names = {"psnr_pathtrace_clean": "PathTrace, clean", "psnr_relight_clean": "Relight, clean",
+             "psnr_basecolor": "BaseColor", "psnr_latents": "Latents"}  # fmt: skip
+    print(f"variant {variant}, objects {', '.join(sorted(latest))} (n={len(latest)})")
+    print("| PSNR, dB | random-pose photos | preset views | random-pose - preset (paired, +- s.e.) | worst object |")
+    print("|---|---|---|---|---|")
+    for m in METRICS:
+        pairs = [(r[f"random_pose/{variant}"].get(m, np.nan), r[f"preset/{variant}"].get(m, np.nan))
+                 for r in latest.values()]  # fmt: skip
+        d = np.array([a - b for a, b in pairs])
+        if np.isnan(d).all():
+            continue
+        se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+        print(f"| {names[m]} | {np.mean([a for a, _ in pairs]):.2f} | {np.mean([b for _, b in pairs]):.2f} | "
+              f"{np.mean(d):+.2f} +- {se:.2f} | {d[np.argmax(np.abs(d))]:+.2f} |")
     return 0
 
 
