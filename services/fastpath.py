@@ -37,6 +37,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from services.core.config import get_settings
 from services.core.db import session_scope
 from services.core.security import hash_api_key
+from services.lifecycle import CHANNEL_PREFIX
 from services.models import ApiKey, Job
 from services.schemas import JobOut
 
@@ -44,7 +45,6 @@ log = logging.getLogger("neumatex.fastpath")
 
 KEY_TTL_S = 1.0  # a revoked key stops working on the fast path within this many seconds
 JOB_TTL_S = 0.5  # a job's body is at most this old (from the start of its load) when no invalidation message came
-CHANNEL_PREFIX = "neumatex:job:"  # Redis pub/sub channel per job: neumatex:job:<id>
 JOB_PATH = re.compile(r"/v1/jobs/([A-Za-z0-9_-]{1,64})")
 ROUTE = SimpleNamespace(path="/v1/jobs/{job_id}")  # the route template services.main.Measure labels metrics with
 JOB_JSON = TypeAdapter(JobOut)

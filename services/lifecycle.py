@@ -84,11 +84,12 @@ def next_stage(job: Job) -> str | None:
 
 # -- events and their wake-ups --------------------------------------------------------------------------------
 _WAKE = "neumatex_wake"  # Session.info key: the job ids whose events this transaction wrote
+CHANNEL_PREFIX = "neumatex:job:"  # Redis pub/sub channel per job: neumatex:job:<id> (SSE and services/fastpath.py)
 
 
 def channel(job_id: str) -> str:
     """The Redis pub/sub channel woken after each committed event of the job."""
-    return f"neumatex:job:{job_id}"
+    return CHANNEL_PREFIX + job_id
 
 
 def add_event(s: Session, job_id: str, kind: str, **data: Any) -> None:
