@@ -21,12 +21,13 @@ from .helpers import KEY_A, KEY_B, Service
 from .postgres import Postgres
 
 DATABASES = ("sqlite", "postgresql")
-# The modules that run on PostgreSQL too (about 4 min more on 2 busy cores): those exercising the database's
-# concurrency and the jobs' lifecycle (workers, beat's reaper and the API writing the same rows; restarts; kill -9)
-# and the migrations. The others (request validation, quotas, the client, the dashboard in a browser) use the same
-# SQLAlchemy code and would double the suite's time for little; NEUMATEX_TEST_DATABASES=postgresql runs any module
-# on PostgreSQL alone.
-POSTGRES_MODULES = ("test_jobs", "test_faults", "test_lifecycle", "test_migrations")
+# The modules that run on PostgreSQL too (about 5 min more on 2 cores): those exercising the database's concurrency
+# and the jobs' lifecycle (workers, beat's reaper and the API writing the same rows; restarts; kill -9), the
+# migrations, the client with its webhooks, quotas and retention, and the status fast path. The others (request
+# validation batteries, the dashboard in a browser, the viewer route) use the same SQLAlchemy code and would add
+# minutes for little; NEUMATEX_TEST_DATABASES=postgresql runs any module on PostgreSQL alone.
+POSTGRES_MODULES = ("test_jobs", "test_faults", "test_lifecycle", "test_migrations", "test_client", "test_operations",
+                    "test_fastpath")
 
 
 def databases(module: str) -> tuple[str, ...]:
