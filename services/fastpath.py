@@ -2,8 +2,8 @@
 in-process caches and hands every other request (and anything unusual about this one) to the FastAPI app.
 
 - API keys: SHA-256 of the key -> tenant id, checked against the database at most once per KEY_TTL_S per key and
-  process, so a revoked key stops working within KEY_TTL_S here (an unknown or revoked key is answered 401 with the
-  route's own body, so the slower route's longer key cache, crud.KEY_CACHE_S, cannot keep it alive).
+  process (KEY_TTL_S = crud.KEY_CACHE_S, the routes' own key cache), so a revoked key stops working within it here
+  as everywhere (an unknown or revoked key is answered 401 with the route's own body).
 - Job bodies: job id -> (tenant id, the JSON bytes the route itself produces: routes/jobs.job_out serialized by
   JobOut like FastAPI's response_model does), loaded at most once per JOB_TTL_S per job and process. An entry is
   dropped (a) when a Redis message arrives on `neumatex:job:<id>` (services/lifecycle.py publishes one after each
@@ -37,13 +37,13 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from services.core.config import get_settings
 from services.core.db import session_scope
 from services.core.security import hash_api_key
+from services.crud import KEY_CACHE_S as KEY_TTL_S
 from services.lifecycle import CHANNEL_PREFIX
 from services.models import ApiKey, Job
 from services.schemas import JobOut
 
 log = logging.getLogger("neumatex.fastpath")
 
-KEY_TTL_S = 1.0  # a revoked key stops working on the fast path within this many seconds
 JOB_TTL_S = 0.5  # a job's body is at most this old (from the start of its load) when no invalidation message came
 JOB_PATH = re.compile(r"/v1/jobs/([A-Za-z0-9_-]{1,64})")
 ROUTE = SimpleNamespace(path="/v1/jobs/{job_id}")  # the route template services.main.Measure labels metrics with
