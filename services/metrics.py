@@ -11,7 +11,8 @@ from prometheus_client.core import GaugeMetricFamily, HistogramMetricFamily
 from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 
-from services.core.config import STAGE_NAMES, get_settings
+from neumatex_core.pipeline import STAGES
+from services.core.config import get_settings
 from services.core.db import session_scope
 from services.models import JOB_STATES, Job, StageRun
 
@@ -35,7 +36,7 @@ class ServiceCollector(Collector):
             for stage, status, n in s.execute(select(StageRun.stage, StageRun.status, func.count())
                                               .group_by(StageRun.stage, StageRun.status)).all():  # fmt: skip
                 runs.add_metric([stage, status], float(n))
-            for stage in STAGE_NAMES:
+            for stage in STAGES:
                 secs = [float(x or 0.0) for x in s.scalars(select(StageRun.seconds).where(
                     StageRun.stage == stage, StageRun.status == "finished", StageRun.seconds.is_not(None)))]
                 buckets = [(str(b), float(sum(1 for x in secs if x <= b))) for b in BUCKETS]

@@ -170,14 +170,6 @@ class Storage(ABC):
     def check_writable(self) -> None:
         """Write, read back and delete a probe (readiness); StorageError saying why not."""
 
-    def path(self, key: str) -> Path:
-        """The key's local path; StorageError on a backend whose files are not on this machine (callers that must
-        work with every backend use the operations above, or `local_tree`)."""
-        local = self.local_path(key)
-        if local is None:
-            raise StorageError(f"storage key {key!r}: this storage ({type(self).__name__}) has no local paths")
-        return local
-
     def read_bytes(self, key: str) -> bytes:
         """The whole file `key` (small files: manifests, records)."""
         return b"".join(self.read_chunks(key)[1])

@@ -31,3 +31,19 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def example():  # -> tto_fixtures.Example
+    """The bundled capture's TTO setup (tests/tto_fixtures.py `load_example`), once per module."""
+    from tto_fixtures import load_example
+
+    return load_example()
+
+
+@pytest.fixture(scope="module")
+def truth_prediction(example):  # -> LMRMPrediction
+    """A prediction fitted to the example's ground truth (tests/tto_fixtures.py `gt_prediction`), once per module."""
+    from tto_fixtures import gt_prediction
+
+    return gt_prediction(example)

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from tto_fixtures import EXAMPLE, Example, gt_prediction, load_example
+from tto_fixtures import EXAMPLE, Example, gt_prediction
 
 from neumatex_core.capture import CaptureError, load_capture
 from neumatex_core.imageio import write_image
@@ -109,16 +109,6 @@ def test_report_lists_fitted_exposures_in_stops(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ TTO
-
-
-@pytest.fixture(scope="module")
-def example() -> Example:
-    return load_example()
-
-
-@pytest.fixture(scope="module")
-def truth_prediction(example) -> LMRMPrediction:
-    return gt_prediction(example)
 
 
 def _photos(example: Example, factors: dict[int, float]) -> PhotoSet:

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import pytest
 import torch
-from tto_fixtures import Example, gbuffer_mse, gt_prediction, load_example, random_prediction
+from tto_fixtures import Example, gbuffer_mse, load_example, random_prediction
 
 from neumatex_core.eval import GroundTruth, gbuffer_psnr, truth_lookup
 from neumatex_core.fields import Triplane
@@ -24,16 +24,6 @@ from neumatex_core.tto.loss import regulariser
 from neumatex_core.tto.optimise import step_generator
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
-
-
-@pytest.fixture(scope="module")
-def example() -> Example:
-    return load_example()
-
-
-@pytest.fixture(scope="module")
-def truth_prediction(example) -> LMRMPrediction:
-    return gt_prediction(example)
 
 
 def perturbed(pred: LMRMPrediction, std: float, seed: int = 1) -> LMRMPrediction:

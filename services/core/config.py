@@ -12,7 +12,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from neumatex_core.pipeline import STAGES as STAGE_NAMES  # the stage order is the pipeline's (written once)
+from neumatex_core.pipeline import STAGES
 
 
 class Settings(BaseSettings):
@@ -92,9 +92,9 @@ class Settings(BaseSettings):
         if self.visibility_timeout_s <= longest + 60:
             raise ValueError(f"visibility_timeout_s ({self.visibility_timeout_s:.0f} s) must exceed the longest stage "
                              f"time limit ({longest:.0f} s) plus a minute, or a running stage is delivered twice")
-        unknown = set(self.stage_time_limits) - set(STAGE_NAMES)
+        unknown = set(self.stage_time_limits) - set(STAGES)
         if unknown:
-            raise ValueError(f"stage_time_limits names unknown stages {sorted(unknown)}; stages: {STAGE_NAMES}")
+            raise ValueError(f"stage_time_limits names unknown stages {sorted(unknown)}; stages: {STAGES}")
         if self.storage == "s3" and not self.s3_bucket:
             raise ValueError("storage 's3' needs a bucket: set NEUMATEX_S3_BUCKET (and NEUMATEX_S3_ENDPOINT_URL for "
                              "an S3-compatible server such as MinIO)")

@@ -14,10 +14,11 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from .helpers import KEY_A, KEY_B, Service
+from .helpers import KEY_A, KEY_B, Service, capture_zip, submit, upload, wait_state
 from .postgres import Postgres
 
 DATABASES = ("sqlite", "postgresql")
@@ -71,3 +72,18 @@ def service(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFac
     svc.start_api()
     yield svc
     svc.stop()
+
+
+@pytest.fixture(scope="module")
+def done(service: Service) -> Iterator[dict[str, Any]]:
+    """One completed tiny job of tenant A, once per module (its worker is stopped afterwards)."""
+    worker = service.start_worker()
+    try:
+        with service.client() as c:
+            r = upload(c, capture_zip())
+            assert r.status_code == 201, r.text
+            job = wait_state(c, submit(c, r.json()["id"])["id"], ("completed", "failed", "canceled"), 240, service)
+            assert job["state"] == "completed", job["error"]
+        yield job
+    finally:
+        worker.stop()

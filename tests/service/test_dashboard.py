@@ -53,22 +53,6 @@ KEY_A2 = "nmx_test_tenant_a_second_key_0123456789"  # a second key of tenant A, 
 SCREENSHOTS = os.environ.get("NEUMATEX_UPDATE_SCREENSHOTS") == "1"
 
 
-@pytest.fixture(scope="module")
-def done(service: Service) -> Iterator[dict[str, Any]]:
-    """One completed tiny job of tenant A (the worker is stopped afterwards)."""
-    worker = service.start_worker()
-    try:
-        with service.client() as c:
-            r = upload(c, capture_zip())
-            assert r.status_code == 201, r.text
-            first = submit(c, r.json()["id"])
-            job = wait_state(c, first["id"], ("completed", "failed", "canceled"), 240, service)
-            assert job["state"] == "completed", job["error"]
-        yield job
-    finally:
-        worker.stop()
-
-
 def images_of(page: str) -> list[str]:
     return re.findall(r"<img src='([^']+)'", page)
 

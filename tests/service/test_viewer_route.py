@@ -5,29 +5,12 @@ are not the viewer's are all 404."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import httpx
 import numpy as np
-import pytest
 
-from .helpers import KEY_B, Service, capture_zip, mint_in_service, submit, upload, wait_state
-
-
-@pytest.fixture(scope="module")
-def done(service: Service) -> Iterator[dict[str, Any]]:
-    """One completed tiny job of tenant A (the worker is stopped afterwards)."""
-    worker = service.start_worker()
-    try:
-        with service.client() as c:
-            r = upload(c, capture_zip())
-            assert r.status_code == 201, r.text
-            job = wait_state(c, submit(c, r.json()["id"])["id"], ("completed", "failed", "canceled"), 240, service)
-            assert job["state"] == "completed", job["error"]
-        yield job
-    finally:
-        worker.stop()
+from .helpers import KEY_B, Service, mint_in_service
 
 
 def test_viewer_token_opens_the_page_and_its_bundle(service: Service, done: dict[str, Any]) -> None:
