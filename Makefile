@@ -35,9 +35,10 @@ sysdeps: $(SYSSTAMP)
 	@command -v chromium >/dev/null || { SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q chromium; }
 	@# PostgreSQL (the deployed database; tests/service run against it too), docker-compose (`config` validates
-	@# docker-compose.yml in tests/test_deploy.py), wrk and hey (the load generators of bench/service.py).
+	@# docker-compose.yml in tests/test_deploy.py), wrk and hey (the load generators of bench/service.py), nginx
+	@# (the reverse proxy that receives uploads: deploy/nginx/, services/proxy.py, tests/service/test_proxy.py).
 	@missing=""; for p in postgresql:/usr/lib/postgresql docker-compose:/usr/bin/docker-compose wrk:/usr/bin/wrk \
-	  hey:/usr/bin/hey; do \
+	  hey:/usr/bin/hey nginx-light:/usr/sbin/nginx; do \
 	  [ -e $${p#*:} ] || missing="$$missing $${p%%:*}"; done; \
 	  if [ -n "$$missing" ]; then SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -q && $$SUDO apt-get install -y -q $$missing; fi

@@ -31,6 +31,7 @@ import argparse
 import functools
 import io
 import json
+import mmap
 import os
 import re
 import resource
@@ -237,7 +238,8 @@ def capture_zip(pad_to: int = 0) -> bytes:
 def status(cluster: Cluster, job_id: str, args: argparse.Namespace) -> dict[str, Any]:
     assert cluster.api is not None and cluster.api.proc is not None
     api = {"API": cluster.api.proc.pid}
-    job_url, health_url = f"{cluster.url}/v1/jobs/{job_id}", f"{cluster.url}/healthz"
+    # the API's own port: the fast path's speed (services/fastpath.py); the proxy's port is measured after
+    job_url, health_url = f"{cluster.api_url}/v1/jobs/{job_id}", f"{cluster.api_url}/healthz"
     n, secs = args.connections, args.seconds
     out: dict[str, Any] = {"load_before": os.getloadavg()}
     wrk(job_url, n, 1, (AUTH,))  # warm-up: connections, caches
@@ -254,6 +256,11 @@ def status(cluster: Cluster, job_id: str, args: argparse.Namespace) -> dict[str,
         out["healthz_fixed_rate"] = measured(api, lambda: hey(health_url, n, args.rate, secs))
     else:
         print("status: hey not found (apt-get install -y hey): no fixed-rate run")
+    if cluster.proxy is not None and cluster.proxy.proc is not None:  # what clients see behind nginx
+        via, both = f"{cluster.url}/v1/jobs/{job_id}", {**api, "proxy": cluster.proxy.proc.pid}
+        wrk(via, n, 1, (AUTH,))
+        out["job_via_proxy"] = measured(both, lambda: wrk(via, n, secs, (AUTH,)))
+        out["job_poisson_via_proxy"] = measured(both, lambda: wrk(via, n, secs, (AUTH,), args.rate, folder))
     out["load_after"] = os.getloadavg()
 
     print(f"status: {load_now()}; wrk -t1 (one thread, one core at most), {n} connections, {secs:.0f} s each")
@@ -266,74 +273,151 @@ def status(cluster: Cluster, job_id: str, args: argparse.Namespace) -> dict[str,
         print(f"  {name:18s} one connection: {one['requests_per_s']:7.0f} req/s, p50 {one['p50_ms']:.2f} ms")
     print(f"  status / healthz requests/s: {out['ratio_to_healthz']:.2f}  (target: GET /v1/jobs/{{id}} >= 1,000 "
           f"req/s with p99 <= 50 ms at 100 connections; closed loop, mean latency = {n} / throughput)")
+    if "job_via_proxy" in out:
+        r = out["job_via_proxy"]
+        print(f"  GET /v1/jobs/{{id}}  closed loop through the proxy (nginx): {r['requests_per_s']:.0f} req/s, p50 "
+              f"{r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms (non-2xx {r['non_2xx']}); cores: "
+              f"{', '.join(f'{k} {v:.2f}' for k, v in r['cores'].items())}")
     for name, key in (("GET /v1/jobs/{id}", "job_poisson"), ("GET /healthz", "healthz_poisson"),
-                      ("GET /v1/jobs/{id}", "job_fixed_rate"), ("GET /healthz", "healthz_fixed_rate")):  # fmt: skip
+                      ("GET /v1/jobs/{id}", "job_fixed_rate"), ("GET /healthz", "healthz_fixed_rate"),
+                      ("GET /v1/jobs/{id}", "job_poisson_via_proxy")):  # fmt: skip
         if key in out:
             r = out[key]
             how = "Poisson arrivals (wrk)" if "poisson" in key else "fixed rate per connection (hey, ticks in step)"
+            how += " through the proxy" if key.endswith("via_proxy") else ""
             print(f"  {name:18s} {r['offered_per_s']:.0f}/s offered, {how}: {r['requests_per_s']:.0f} "
                   f"req/s, p50 {r['p50_ms']:.1f} ms, p90 {r['p90_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms "
                   f"(non-2xx {r['non_2xx']}); cores: {', '.join(f'{k} {v:.2f}' for k, v in r['cores'].items())}")
     return out
 
 
-def disk_write_mb_s(path: Path, data: bytes, fsync: bool) -> float:
-    """MB/s of writing `data` to `path` in 1 MiB writes (as the server streams), with a final fsync or not."""
+def seconds_list(runs: list[dict[str, Any]]) -> str:
+    return ", ".join(f"{r['seconds']:.2f}" for r in runs)
+
+
+def disk_write_seconds(folder: Path, data: bytes) -> float:
+    """Seconds to write `data` to a new file in `folder` in 1 MiB writes (as servers stream) and fsync it: the
+    same work a durable upload does (a new file's pages, then the disk). The file is removed afterwards."""
+    path = folder / f"bench-disk-reference-{time.monotonic_ns()}.bin"
     t0 = time.perf_counter()
     with open(path, "wb") as f:
         view = memoryview(data)
         for i in range(0, len(data), 1 << 20):
             f.write(view[i:i + (1 << 20)])
-        if fsync:
-            f.flush()
-            os.fsync(f.fileno())
-    return len(data) / 1e6 / (time.perf_counter() - t0)
+        f.flush()
+        os.fsync(f.fileno())
+    seconds = time.perf_counter() - t0
+    path.unlink()
+    return seconds
+
+
+def direct_write_seconds(folder: Path, data: bytes) -> tuple[float, int]:
+    """(seconds, bytes) to write `data` (whole MiBs of it) to a new file with O_DIRECT in 1 MiB writes: the raw
+    disk, what `dd oflag=direct bs=1M` measures, without the page cache (whose speed on a VM depends on whether the
+    host backs the pages already, see bench/README.md)."""
+    path = folder / f"bench-disk-direct-{time.monotonic_ns()}.bin"
+    block = 1 << 20
+    n = len(data) // block * block
+    buf = mmap.mmap(-1, block)  # page-aligned, as O_DIRECT needs
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_DIRECT, 0o644)
+    try:
+        t0 = time.perf_counter()
+        for i in range(0, n, block):
+            buf[:] = data[i:i + block]
+            os.write(fd, buf)
+        os.fsync(fd)
+        seconds = time.perf_counter() - t0
+    finally:
+        os.close(fd)
+        buf.close()
+        path.unlink()
+    return seconds, n
+
+
+# The product's own client uploading a capture folder (neumatex_client: an upload session, files larger than its
+# chunk as raw PUTs, the rest in forms, then the commit), timed inside its own process.
+CLIENT_UPLOAD = """
+import json, sys, time
+from neumatex_client.client import Client
+client = Client(sys.argv[1], sys.argv[2])
+t0 = time.perf_counter()
+cap = client.upload_capture(sys.argv[3])
+print(json.dumps({"seconds": time.perf_counter() - t0, "capture_id": cap.id, "bytes": cap.bytes}))
+"""
 
 
 def upload(cluster: Cluster, args: argparse.Namespace) -> dict[str, Any]:
+    """Three measurements interleaved `--repeats` times, each on fresh files (see the module's docstring): the
+    disk reference, the zip POSTed by curl, the capture folder uploaded by the client; each capture is deleted
+    after it is measured."""
     assert cluster.api is not None and cluster.api.proc is not None
     body = capture_zip(int(args.upload_mb * 1e6))
     folder = cluster.storage.parent  # the same filesystem as the storage folder
-    src = folder / "bench-capture.zip"
+    src, tree = folder / "bench-capture.zip", folder / "bench-capture"
     src.write_bytes(body)
-    ref = folder / "bench-disk-reference.bin"
-    disk = max(disk_write_mb_s(ref, body, fsync=False) for _ in range(args.repeats))
-    disk_fsync = max(disk_write_mb_s(ref, body, fsync=True) for _ in range(args.repeats))
-    ref.unlink()
+    with zipfile.ZipFile(src) as z:
+        z.extractall(tree)
+    pids = {"API": cluster.api.proc.pid}
+    if cluster.proxy is not None and cluster.proxy.proc is not None:
+        pids["proxy"] = cluster.proxy.proc.pid
     headers_file = folder / "bench-upload-headers.txt"
-    cmd = [need("curl"), "-sS", "-o", str(folder / "bench-upload-response.json"), "-D", str(headers_file),
-           "-w", "%{http_code} %{time_total}", "-H", AUTH, "-H", "Content-Type: application/zip", "-H", "Expect:",
-           "--data-binary", f"@{src}", f"{cluster.url}/v1/captures?name=bench-upload"]  # fmt: skip
+    curl = [need("curl"), "-sS", "-o", str(folder / "bench-upload-response.json"), "-D", str(headers_file),
+            "-w", "%{http_code} %{time_total}", "-H", AUTH, "-H", "Content-Type: application/zip", "-H", "Expect:",
+            "--data-binary", f"@{src}", f"{cluster.url}/v1/captures?name=bench-upload"]  # fmt: skip
 
-    def run() -> dict[str, Any]:
-        code, total = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout.split()
+    def zip_run() -> dict[str, Any]:
+        code, total = subprocess.run(curl, capture_output=True, text=True, check=True).stdout.split()
+        if int(code) != 201:
+            raise SystemExit(f"upload failed: {code} {(folder / 'bench-upload-response.json').read_text()}")
         timing = next((line.split(":", 1)[1] for line in headers_file.read_text().splitlines()
                        if line.lower().startswith("server-timing:")), "")  # fmt: skip
         server = {k.strip(): float(v) / 1e3 for k, _, v in (x.partition(";dur=") for x in timing.split(",")
                                                             if x.strip())}  # fmt: skip
-        return {"generator": "curl --data-binary", "status_code": int(code), "seconds": float(total),
-                "server_seconds": server}  # fmt: skip
+        cap = json.loads((folder / "bench-upload-response.json").read_text())
+        return {"seconds": float(total), "server_seconds": server, "capture_id": cap["id"]}
 
-    runs = []
-    for _ in range(args.repeats):
-        runs.append(measured({"API": cluster.api.proc.pid}, run))
-        if runs[-1]["status_code"] != 201:
-            raise SystemExit(f"upload failed: {runs[-1]['status_code']} "
-                             f"{(folder / 'bench-upload-response.json').read_text()}")  # fmt: skip
-    res = min(runs, key=lambda r: float(r["seconds"]))  # the best of the repeats, as for the disk
-    res["all_seconds"] = [r["seconds"] for r in runs]
-    server = res["server_seconds"]
+    def folder_run() -> dict[str, Any]:
+        cmd = [sys.executable, "-c", CLIENT_UPLOAD, cluster.url, KEY, str(tree / "teapot")]
+        out = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+        if out.returncode != 0:
+            raise SystemExit(f"the client's upload failed:\n{out.stderr[-2000:]}")
+        return dict(json.loads(out.stdout.strip().splitlines()[-1]))
+
+    runs: dict[str, list[dict[str, Any]]] = {"raw": [], "disk": [], "zip": [], "folder": []}
+    with httpx.Client(base_url=cluster.api_url, headers={"Authorization": f"Bearer {KEY}"}, timeout=600) as api:
+        for _ in range(args.repeats):
+            seconds, n = direct_write_seconds(folder, body)
+            runs["raw"].append({"seconds": seconds * len(body) / n})  # as if all of `body` had been written
+            runs["disk"].append({"seconds": disk_write_seconds(folder, body)})
+            for name, run in (("zip", zip_run), ("folder", folder_run)):
+                runs[name].append(measured(pids, run))
+                assert api.delete(f"/v1/captures/{runs[name][-1]['capture_id']}").status_code == 200
+    shutil.rmtree(tree)
     src.unlink()
-    mb_s = len(body) / 1e6 / res["seconds"]
-    res.update(bytes=len(body), mb_per_s=mb_s, disk_write_mb_per_s=disk, disk_write_fsync_mb_per_s=disk_fsync,
-               ratio_to_disk=mb_s / disk, ratio_to_disk_fsync=mb_s / disk_fsync, load=os.getloadavg())  # fmt: skip
-    print(f"upload: {load_now()}; {len(body) / 1e6:.0f} MB POSTed raw by curl to /v1/captures (local storage)")
-    print(f"  {mb_s:.0f} MB/s ({res['seconds']:.2f} s, incl. unpack + validation) vs disk write of the same bytes "
-          f"{disk:.0f} MB/s (page cache) / {disk_fsync:.0f} MB/s (with fsync): ratio {mb_s / disk:.3f} / "
-          f"{mb_s / disk_fsync:.3f}  (target >= 0.5)")
-    print("  server time: " + (", ".join(f"{k} {v:.2f} s" for k, v in server.items()) or "no Server-Timing header")
-          + f"; outside the server's timers (client, network, framework) {res['seconds'] - sum(server.values()):.2f} s")
-    print(f"  {limit_of(res['cores'], 'API')}; cores: {', '.join(f'{k} {v:.2f}' for k, v in res['cores'].items())}")
+    mb = len(body) / 1e6
+    raw = mb / min(r["seconds"] for r in runs["raw"])  # the best of the repeats, as for the uploads
+    disk = mb / min(r["seconds"] for r in runs["disk"])
+    res: dict[str, Any] = {"bytes": len(body), "front": "nginx (deploy/nginx/)" if "proxy" in pids else "the API",
+                           "disk_raw_mb_per_s": raw, "disk_raw_seconds": [r["seconds"] for r in runs["raw"]],
+                           "disk_write_fsync_mb_per_s": disk, "disk_seconds": [r["seconds"] for r in runs["disk"]],
+                           "load": os.getloadavg()}  # fmt: skip
+    print(f"upload: {load_now()}; {mb:.0f} MB capture to {res['front']} (local storage, durable: fsynced before 201)")
+    print(f"  raw disk write: {raw:.0f} MB/s (O_DIRECT, 1 MiB writes, a new file; best of "
+          f"{seconds_list(runs['raw'])} s); through the page cache + fsync: {disk:.0f} MB/s (best of "
+          f"{seconds_list(runs['disk'])} s)")
+    for name, what in (("zip", "zip POSTed by curl to /v1/captures"),
+                       ("folder", "folder uploaded by neumatex_client (session: PUT large files, forms, commit)")):
+        best = min(runs[name], key=lambda r: float(r["seconds"]))
+        mb_s = mb / best["seconds"]
+        res[name] = {**best, "mb_per_s": mb_s, "ratio_to_disk_raw": mb_s / raw, "ratio_to_disk_fsync": mb_s / disk,
+                     "all_seconds": [r["seconds"] for r in runs[name]]}  # fmt: skip
+        print(f"  {what}: {mb_s:.0f} MB/s ({best['seconds']:.2f} s; all {seconds_list(runs[name])} s): ratio to "
+              f"the raw disk {mb_s / raw:.2f} (target >= 0.5), to the page cache + fsync {mb_s / disk:.2f}")
+        server = best.get("server_seconds", {})
+        if server:
+            print("    server time: " + ", ".join(f"{k} {v:.2f} s" for k, v in server.items()))
+        print(f"    {limit_of(best['cores'], 'API')}; cores: "
+              + ", ".join(f"{k} {v:.2f}" for k, v in best["cores"].items()))
     return res
 
 
@@ -394,11 +478,13 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=10.0, help="per status run")
     ap.add_argument("--rate", type=float, default=1000.0, help="offered requests/s of the fixed-rate status runs")
     ap.add_argument("--upload-mb", type=float, default=256.0)
-    ap.add_argument("--repeats", type=int, default=2, help="uploads and disk writes each; the best is reported")
+    ap.add_argument("--repeats", type=int, default=3, help="uploads and disk writes each; the best is reported")
     ap.add_argument("--jobs", type=int, default=4, help="jobs per measurement (1 worker, then 2)")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--config", default='{"device": "cpu"}', help="the jobs' config overrides (JSON)")
     ap.add_argument("--quick", action="store_true", help="4 s status runs, a 64 MB upload, 2 tiny jobs")
+    ap.add_argument("--no-proxy", dest="proxy", action="store_false",
+                    help="talk to the API directly instead of through nginx (deploy/nginx/, services/proxy.py)")
     ap.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
                     help="extra environment of the service's processes, e.g. UVICORN_WORKERS=2 (repeatable)")
     args = ap.parse_args()
@@ -412,7 +498,7 @@ def main() -> None:
     root = Path(tempfile.mkdtemp(prefix="neumatex-bench-service-"))
     extra = dict(kv.split("=", 1) for kv in args.env)
     cluster = Cluster(root, {**FAST, "NEUMATEX_MAX_UPLOAD_BYTES": str(2 * 1024**3),
-                             "NEUMATEX_MAX_CAPTURE_BYTES": str(2 * 1024**3), **extra})  # fmt: skip
+                             "NEUMATEX_MAX_CAPTURE_BYTES": str(2 * 1024**3), **extra}, proxy=args.proxy)  # fmt: skip
     record: dict[str, Any] = {"load_at_start": os.getloadavg()}
     try:
         cluster.redis.start()

@@ -14,6 +14,7 @@ POST never makes a second job. Refusals raise `ApiError` subclasses carrying the
 from __future__ import annotations
 
 import fnmatch
+import functools
 import json
 import os
 import random
@@ -24,6 +25,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 
@@ -66,6 +68,21 @@ def _capture_files(folder: Path, exclude: Iterable[str]) -> list[tuple[str, Path
         out.append((rel, p))
     return out
 
+
+
+def _report(progress: Callable[[int, int], None] | None, before: int, total: int, sent: int) -> None:
+    if progress:
+        progress(before + sent, total)
+
+
+def _file_stream(src: Path, progress: Callable[[int], None]) -> Iterator[bytes]:
+    """The file's bytes in READ_BYTES blocks, `progress(bytes sent so far)` after each."""
+    sent = 0
+    with open(src, "rb") as f:
+        while block := f.read(READ_BYTES):
+            sent += len(block)
+            progress(sent)
+            yield block
 
 class Client:
     """The NeuMatEx job service at `url` with one tenant's `api_key` (default: $NEUMATEX_API_KEY)."""
@@ -142,9 +159,10 @@ class Client:
         """Upload a capture folder (holding transforms.json) or a capture .zip; returns the validated capture.
 
         A folder goes through an upload session (POST /v1/uploads, files in requests of at most `chunk_bytes` and
-        50 files, commit), each request retried on its own: a request whose answer was lost and that the server
-        had stored is recognised by its 409 naming exactly its files, so the upload goes on from there. A zip is
-        streamed in one request. `exclude`: glob patterns of paths (or top-level folders) left out. `progress`
+        50 files, each file larger than `chunk_bytes` alone as a raw PUT streamed from disk, commit), each request
+        retried on its own: a request whose answer was lost and that the server had stored is recognised by its
+        409 naming exactly its files, so the upload goes on from there. A zip is streamed in one request.
+        `exclude`: glob patterns of paths (or top-level folders) left out. `progress`
         is called with (bytes sent, total bytes)."""
         src = Path(path)
         if src.name == "transforms.json":
@@ -158,11 +176,15 @@ class Client:
         total, sent = sum(p.stat().st_size for _, p in files), 0
         up = Upload.model_validate(self._json("POST", "/v1/uploads", json={"name": label}))
         try:
-            for chunk in self._chunks(files, chunk_bytes):
+            large = [(rel, p) for rel, p in files if p.stat().st_size > chunk_bytes]
+            for chunk in self._chunks([f for f in files if f not in large], chunk_bytes):
                 self._upload_chunk(up.id, chunk)
                 sent += sum(p.stat().st_size for _, p in chunk)
                 if progress:
                     progress(sent, total)
+            for rel, p in large:  # last: the server flushes each to disk while the next one arrives
+                self._put_file(up.id, rel, p, functools.partial(_report, progress, sent, total))
+                sent += p.stat().st_size
             return Capture.model_validate(self._json("POST", f"/v1/uploads/{up.id}/commit"))
         except BaseException:
             try:  # the staged files count against the quota: drop them
@@ -197,20 +219,22 @@ class Client:
             if {p.get("file") for p in exc.problems} != {rel for rel, _ in chunk}:
                 raise
 
+    def _put_file(self, upload_id: str, rel: str, src: Path, progress: Callable[[int], None]) -> None:
+        """PUT one file as the raw body (streamed from disk); a 409 naming it means an earlier try stored it."""
+        try:
+            self.request("PUT", f"/v1/uploads/{upload_id}/files/{quote(rel)}",
+                         headers={"Content-Type": "application/octet-stream",
+                                  "Content-Length": str(src.stat().st_size)},
+                         body=lambda: {"content": _file_stream(src, progress)})  # fmt: skip
+        except Conflict as exc:
+            if {p.get("file") for p in exc.problems} != {rel}:
+                raise
+
     def _upload_zip(self, src: Path, name: str, progress: Callable[[int, int], None] | None) -> Capture:
         total = src.stat().st_size
 
         def body() -> dict[str, Any]:
-            def stream() -> Iterator[bytes]:
-                sent = 0
-                with open(src, "rb") as f:
-                    while block := f.read(READ_BYTES):
-                        sent += len(block)
-                        if progress:
-                            progress(sent, total)
-                        yield block
-
-            return {"content": stream()}
+            return {"content": _file_stream(src, functools.partial(_report, progress, 0, total))}
 
         headers = {"Content-Type": "application/zip", "Content-Length": str(total),
                    "Content-Disposition": f'attachment; filename="{src.name}"'}  # fmt: skip

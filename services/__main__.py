@@ -15,9 +15,13 @@ import os
 import shutil
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import urlparse
 
 from services.supervisor import Child, Supervisor
+
+if TYPE_CHECKING:
+    from services.proxy import ProxyConfig
 
 
 def redis_up(url: str) -> bool:
@@ -78,6 +82,16 @@ def api_command(host: str, port: int) -> list[str]:
             "--log-level", "warning", "--timeout-graceful-shutdown", f"{get_settings().shutdown_grace_s:g}"]
 
 
+def proxy_config(host: str, port: int, data_dir: Path, max_upload_bytes: int) -> ProxyConfig | None:
+    """nginx in front of the API on `host:port` (services/proxy.py), or None when nginx is not installed."""
+    from services.cluster import free_port
+    from services.proxy import ProxyConfig, nginx_path
+
+    if nginx_path() is None:
+        return None
+    return ProxyConfig(data_dir / "proxy", port, free_port(), max_upload_bytes, host=host)
+
+
 def serve(args: argparse.Namespace) -> int:
     from services.core.config import get_settings
     from services.core.db import get_engine, session_scope
@@ -105,13 +119,22 @@ def serve(args: argparse.Namespace) -> int:
     with session_scope() as s:
         ensure_tenant(s, st.bootstrap_tenant or "local", key)
     env = dict(os.environ)
-    sup.add(Child("api", api_command(args.host, args.port), env))
+    api_host, api_port = args.host, args.port
+    proxy = None if args.no_proxy else proxy_config(args.host, args.port, st.data_dir, st.max_upload_bytes)
+    if proxy is not None:  # nginx takes the port and receives uploads; the API listens on this machine only
+        api_host, api_port = "127.0.0.1", proxy.api_port
+        env.update(proxy.api_env())
+        proxy.write()
+        sup.add(Child("nginx", proxy.command(), env))
+    sup.add(Child("api", api_command(api_host, api_port), env))
     sup.add(Child("worker", worker_command("cpu,gpu" if args.gpu else "cpu", 1, "cpu@%h"), env))
     sup.add(Child("beat", beat_command(st.data_dir), env))
     print(f"NeuMatEx service: dashboard http://{args.host}:{args.port}/  (API docs /docs)")
     print(f"API key (tenant '{st.bootstrap_tenant or 'local'}'): {key}   [saved in {key_file}]")
-    print("Ctrl-C stops the API, the worker, beat" + (" and redis-server" if redis else "") + "; a child that dies is "
-          "restarted", flush=True)
+    print("uploads are received by nginx (deploy/nginx/)" if proxy is not None else
+          "nginx not found (make sysdeps installs it) or --no-proxy: uploads go through the API, several times slower")
+    print("Ctrl-C stops the API, the worker, beat" + (", nginx" if proxy else "") + (" and redis-server" if redis
+          else "") + "; a child that dies is restarted", flush=True)
     return sup.run()
 
 
@@ -147,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--gpu", action="store_true", help="the worker also takes the gpu queue")
+    p.add_argument("--no-proxy", action="store_true",
+                   help="no nginx in front: the API takes the port and receives uploads itself")
     p.add_argument("--max-restarts", type=int, default=5,
                    help="a child that dies more often than this within 60 s stops everything")
     p = sub.add_parser("api", help="only the API")

@@ -1,8 +1,9 @@
 """A whole service on this machine as subprocesses: redis-server on a free port (append-only file on, so it can be
 stopped and started again without losing messages), the API under uvicorn, Celery workers and Celery beat (the
 reaper's schedule: `start_beat`, needed wherever a job must be re-queued after its worker died), sharing one data
-folder (SQLite + local storage). Used by tests/service and bench/service.py; each process runs in its own session,
-so `kill9()` reaches a worker's pool children too.
+folder (SQLite + local storage), optionally behind the reverse proxy (nginx, services/proxy.py: `proxy=True`, then
+`url` is the proxy's and `api_url` the API's own). Used by tests/service and bench/service.py; each process runs in
+its own session, so `kill9()` reaches a worker's pool children too.
 """
 
 from __future__ import annotations
@@ -114,14 +115,23 @@ class Proc:
 class Cluster:
     """Redis, the API and workers sharing one environment (data folder, database, broker)."""
 
-    def __init__(self, root: Path, env: dict[str, str] | None = None):
+    def __init__(self, root: Path, env: dict[str, str] | None = None, proxy: bool = False):
+        from services.proxy import ProxyConfig
+
         self.root = root
         self.redis = Redis(root / "redis")
         self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.api_url = f"http://127.0.0.1:{self.port}"
         self.env = {**os.environ, "NEUMATEX_DATA_DIR": str(root / "data"), "NEUMATEX_REDIS_URL": self.redis.url,
                     "NEUMATEX_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1",
                     **(env or {})}  # fmt: skip
+        self.proxy_config: ProxyConfig | None = None
+        if proxy:
+            limit = int(self.env.get("NEUMATEX_MAX_UPLOAD_BYTES", 2 * 1024**3))
+            self.proxy_config = ProxyConfig(root / "proxy", free_port(), self.port, limit, workers=1)
+            self.env.update(self.proxy_config.api_env())
+        self.url = f"http://127.0.0.1:{self.proxy_config.port}" if self.proxy_config else self.api_url
+        self.proxy: Proc | None = None
         self.api: Proc | None = None
         self.beat: Proc | None = None
         self.workers: list[Proc] = []
@@ -142,7 +152,12 @@ class Cluster:
         from services.__main__ import api_command
 
         self.api = Proc(api_command("127.0.0.1", self.port), self.env, self.root / "api.log").start()
-        wait_for(lambda: httpx.get(self.url + "/healthz", timeout=2).status_code == 200, timeout, "the API")
+        wait_for(lambda: httpx.get(self.api_url + "/healthz", timeout=2).status_code == 200, timeout, "the API")
+        if self.proxy_config is not None and (self.proxy is None or self.proxy.proc is None
+                                              or self.proxy.proc.poll() is not None):  # fmt: skip
+            self.proxy_config.write()
+            self.proxy = Proc(self.proxy_config.command(), self.env, self.root / "proxy.log").start()
+            wait_for(lambda: httpx.get(self.url + "/healthz", timeout=2).status_code == 200, timeout, "the proxy")
 
     def restart_api(self) -> None:
         assert self.api is not None
@@ -175,6 +190,8 @@ class Cluster:
             self.beat.stop()
         for w in self.workers:
             w.stop()
+        if self.proxy is not None:
+            self.proxy.stop()
         if self.api is not None:
             self.api.stop()
         self.redis.stop()

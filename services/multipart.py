@@ -4,13 +4,12 @@ endless body is cut at the limit with nothing spooled to TMPDIR. Non-file fields
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import IO
 
 from python_multipart.exceptions import MultipartParseError
 from python_multipart.multipart import MultipartParser, parse_options_header
-from starlette.requests import Request
 
 from neumatex_core.capture.archive import name_problem, safe_member_path
 from neumatex_core.capture.archive import shown_name as shown
@@ -104,15 +103,16 @@ def too_large(limit: int) -> ApiError:
                     headers={"Connection": "close"})
 
 
-async def save_multipart(request: Request, dest: Path, budget: int, max_files: int,
+async def save_multipart(content_type: str, body: AsyncIterator[bytes], dest: Path, budget: int, max_files: int,
                          on_bytes: Callable[[int], None]) -> tuple[list[str], int]:
-    """Write the form's files under `dest` as they arrive; returns (their relative names, bytes).
+    """Write the files of the form `body` (a multipart/form-data `content_type` header) under `dest` as they
+    arrive; returns (their relative names, bytes).
 
     `on_bytes(n)` is called before n more bytes are written (the caller's free-space check). Raises ApiError:
     413 over `budget` bytes or `max_files` files, 422 a bad file name or a name both file and folder, 409 a
     file twice, 400 a malformed body. The caller removes `dest` on error.
     """
-    _, params = parse_options_header(request.headers.get("content-type", ""))
+    _, params = parse_options_header(content_type)
     boundary = params.get(b"boundary")
     if not boundary:
         raise ApiError(400, "the multipart form has no boundary in its Content-Type header")
@@ -123,7 +123,7 @@ async def save_multipart(request: Request, dest: Path, budget: int, max_files: i
                                                   "on_part_end")}  # fmt: skip
     parser = MultipartParser(boundary, callbacks)  # type: ignore[arg-type]
     try:
-        async for chunk in request.stream():
+        async for chunk in body:
             parser.write(chunk)
         parser.finalize()
     except MultipartParseError as exc:

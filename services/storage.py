@@ -77,6 +77,41 @@ def folder_bytes(folder: Path) -> int:
     return total
 
 
+def sync_tree(folder: Path) -> None:
+    """fsync every file under `folder` and the folders themselves (the data, then the names); `folder` may be
+    a single file."""
+    for path in [folder, *(sorted(folder.rglob("*")) if folder.is_dir() else [])]:
+        if path.is_symlink():
+            continue
+        fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if path.is_dir() else 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def start_sync(path: Path) -> None:
+    """Begin flushing a file or folder to disk on a background thread, so that the disk works while the request
+    goes on (validation, the client's next files); best effort, since the commit's sync_tree is what counts."""
+
+    def run() -> None:
+        try:
+            sync_tree(path)
+        except OSError:
+            pass
+
+    threading.Thread(target=run, name="start-sync", daemon=True).start()
+
+
+def sync_tree_name(path: Path) -> None:
+    """fsync the folder holding `path`, so that its (new) name is on disk."""
+    fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def local_files(folder: Path) -> list[str]:
     """The files below a local folder as relative POSIX paths, sorted (links are not followed)."""
     return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file() and not p.is_symlink())
@@ -326,12 +361,15 @@ class LocalStorage(Storage):
         if replace:
             self.delete(key)
         dst.parent.mkdir(parents=True, exist_ok=True)
+        sync_tree(src)  # on disk before it appears: a committed capture or stage survives a power cut
         try:
             os.replace(src, dst)  # one rename: the folder appears whole
         except OSError:
             if dst.exists() or src.stat().st_dev == dst.parent.stat().st_dev:
                 raise
             shutil.move(src, dst)  # another file system (not a workspace): copied, then removed
+            sync_tree(dst)
+        sync_tree_name(dst)
 
     def commit_file(self, src: Path, key: str) -> None:
         dst = self.path(key)

@@ -11,14 +11,20 @@ arrive, form files included: services/multipart.py) and the file count -> 413; t
 symlinks, zip bombs, bad file names -> 422 (the checks of `neumatex_core.capture.extract_zip`); file types outside
 allowed_suffixes -> 415; free space on the disk of the local folder below min_free_bytes (or the disk full) -> 507.
 
-Speed (docs/service.md, "Storage"): the body is written once as it arrives (no spooling, no hashing: the zip's
-own CRCs are checked while unpacking), in large writes; the unpacked capture is moved into place by one rename.
+Speed (docs/service.md, "Storage" and "Uploads through the proxy"): the body is written once as it arrives (no
+spooling, no hashing: the zip's own CRCs are checked while unpacking), in large writes; stored members are unpacked
+by the kernel (neumatex_core.capture.archive); the unpacked capture is moved into place by one rename. Behind the
+reverse proxy (deploy/nginx/) the body never passes through Python: nginx writes it to a file and names it in
+BODY_FILE_HEADER (`proxied_body_file`).
 """
 
 from __future__ import annotations
 
 import errno
+import hmac
+import os
 import shutil
+import stat
 import zipfile
 from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import contextmanager
@@ -39,6 +45,8 @@ from services.storage import Storage, local_files
 CHUNK = 1 << 20
 WRITE_BYTES = 4 << 20  # the body is written in pieces of about this size
 UNNAMED_ZIP = "the uploaded zip"
+BODY_FILE_HEADER = "x-neumatex-body-file"  # set by the proxy (deploy/nginx/): the file holding the request body
+BODY_TOKEN_HEADER = "x-neumatex-body-token"  # the proxy's secret (Settings.proxy_body_token)
 
 
 def staging_key(upload_id: str) -> str:
@@ -84,6 +92,55 @@ def disk_full_is_507(root: Path, reserve: int) -> Iterator[None]:
         if exc.errno != errno.ENOSPC:
             raise
         raise storage_full(shutil.disk_usage(root).free, reserve) from None
+
+
+def proxied_body_file(request: Request, settings: Settings) -> Path | None:
+    """The file in which the reverse proxy saved this request's body, or None when the body comes through the API.
+
+    Honoured only with the proxy's secret (Settings.proxy_body_token) and for a regular file inside
+    Settings.proxy_body_dir, so a client reaching the API directly cannot make it read another file (400)."""
+    name = request.headers.get(BODY_FILE_HEADER, "")
+    if not name:
+        return None
+    token = request.headers.get(BODY_TOKEN_HEADER, "")
+    folder = settings.proxy_body_dir
+    if folder is None or not hmac.compare_digest(token.encode(), settings.proxy_body_token.encode()):
+        raise ApiError(400, f"the {BODY_FILE_HEADER} header is only accepted from this service's proxy; send the "
+                       "upload as the request body")
+    path = Path(name)
+    try:
+        inside = path.is_absolute() and path.resolve().parent == folder.resolve()
+        regular = inside and stat.S_ISREG(os.lstat(path).st_mode)
+    except OSError:
+        regular = False
+    if not regular:
+        raise ApiError(500, "the proxy named a request body file that is not in its body folder; check that "
+                       "NEUMATEX_PROXY_BODY_DIR is the proxy's client_body_temp_path (deploy/nginx/)")
+    return path
+
+
+def adopt_body_file(body_file: Path, target: Path, budget: int) -> int:
+    """Make the proxy's body file the file `target` (mode 0644) without copying it where possible: a hard link
+    (the proxy removes its own name when the answer is sent), else a copy (another file system). Returns its
+    size; 413 over `budget`."""
+    size = body_file.stat().st_size
+    if size > budget:
+        raise too_large(budget)
+    try:
+        os.link(body_file, target)
+    except OSError as exc:
+        if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP):
+            raise
+        shutil.copyfile(body_file, target)
+    target.chmod(0o644)
+    return size
+
+
+async def file_chunks(path: Path) -> AsyncIterator[bytes]:
+    """A saved body read in CHUNK pieces (for the multipart parser)."""
+    with open(path, "rb") as f:
+        while chunk := await anyio.to_thread.run_sync(f.read, CHUNK):
+            yield chunk
 
 
 def upload_label(request: Request) -> str:
@@ -138,9 +195,10 @@ def declared_size(zip_path: Path) -> int:
         return 0
 
 
-def unpack_zip(zip_path: Path, dest: Path, settings: Settings, label: str) -> None:
+def unpack_zip(zip_path: Path, dest: Path, settings: Settings, label: str, remove: bool = True) -> None:
     """Safe extraction (zip-slip, links, bombs, names, limits: neumatex_core.capture.extract_zip), named `label`
-    in messages; 507 first when the declared size would not leave min_free_bytes free; the zip is removed."""
+    in messages; 507 first when the declared size would not leave min_free_bytes free; the zip is removed unless
+    `remove` is false (the proxy's body file, which the proxy removes)."""
     try:
         space_guard(dest.parent, settings.min_free_bytes)(min(declared_size(zip_path), settings.max_capture_bytes))
         extract_zip(zip_path, dest, settings.max_capture_bytes, settings.max_files, settings.max_zip_ratio, label)
@@ -148,7 +206,8 @@ def unpack_zip(zip_path: Path, dest: Path, settings: Settings, label: str) -> No
         first = exc.problems[0].message if len(exc.problems) == 1 else f"{len(exc.problems)} problems"
         raise ApiError(422, f"{label} cannot be unpacked safely: {first}", problems_of(exc)) from None
     finally:
-        zip_path.unlink(missing_ok=True)
+        if remove:
+            zip_path.unlink(missing_ok=True)
 
 
 def merge_clashes(part: Path, old: set[str]) -> tuple[list[str], list[str]]:

@@ -101,7 +101,7 @@ def test_compose_validates_with_and_without_the_gpu_profile() -> None:
     # docker-compose 1.29 (compose spec, profiles since 1.28): `config` checks the file against its schema,
     # interpolates variables and resolves anchors; it lists profiled services either way, so also check the
     # profile is set where it must be.
-    expected = {"postgres", "redis", "minio", "minio-init", "api", "worker-cpu", "worker-gpu", "beat"}
+    expected = {"postgres", "redis", "minio", "minio-init", "proxy", "api", "worker-cpu", "worker-gpu", "beat"}
     plain = compose_config(COMPOSE)
     gpu = compose_config(COMPOSE, "--profile", "gpu")
     example = compose_config(COMPOSE, env_file=ENV_EXAMPLE)
@@ -148,7 +148,7 @@ def test_every_long_running_service_has_a_healthcheck_and_waits_for_healthy_depe
                 assert cond.get("condition") == want, f"{name} -> {dep}: {cond}"
     tests = {name: " ".join(s["healthcheck"]["test"]) for name, s in main_config["services"].items()
              if "healthcheck" in s}  # fmt: skip
-    assert "/healthz" in tests["api"]
+    assert "/healthz" in tests["api"] and "/healthz" in tests["proxy"]
     assert "redis-cli ping" in tests["redis"]
     assert "pg_isready" in tests["postgres"]
     assert "mc ready" in tests["minio"]
@@ -191,6 +191,30 @@ def test_the_service_subcommands_compose_runs_exist(main_config: dict[str, Any])
     assert used == {"migrate", "api", "worker", "beat"}
     assert used <= available, f"docker-compose.yml runs `python -m services` {sorted(used - available)}, which " \
                               f"services/__main__.py does not have (it has {sorted(available)})"
+
+
+@needs_compose
+def test_the_proxy_and_the_api_agree_on_the_body_files(main_config: dict[str, Any]) -> None:
+    # nginx names each upload's body file to the API (deploy/nginx/neumatex.conf.template): both must see the same
+    # folder, share the secret, and run as the same user (the files are mode 0600)
+    proxy, api = main_config["services"]["proxy"], main_config["services"]["api"]
+    template = "deploy/nginx/neumatex.conf.template:/etc/nginx/templates/default.conf.template"
+    mounts = {name: {(v["source"], v["target"]) if isinstance(v, dict) else tuple(v.split(":")[:2])
+                     for v in s["volumes"]} for name, s in (("proxy", proxy), ("api", api))}  # fmt: skip
+    assert any(str(src).endswith(template.split(":")[0]) and dst == template.split(":")[1]
+               for src, dst in mounts["proxy"])  # fmt: skip
+    body_dir = api["environment"]["NEUMATEX_PROXY_BODY_DIR"]
+    assert proxy["environment"]["NEUMATEX_PROXY_BODY_DIR"] == body_dir
+    assert ("upload-bodies", body_dir) in mounts["proxy"] and ("upload-bodies", body_dir) in mounts["api"]
+    assert proxy["environment"]["NEUMATEX_PROXY_BODY_TOKEN"] == api["environment"]["NEUMATEX_PROXY_BODY_TOKEN"]
+    assert len(api["environment"]["NEUMATEX_PROXY_BODY_TOKEN"]) >= 16
+    uid = re.search(r"useradd [^\n]*--uid (\d+)", (ROOT / "deploy" / "Dockerfile").read_text())
+    assert uid and proxy["user"].split(":")[0] == uid.group(1)
+    assert f"install -d -o neumatex -m 0700 {body_dir}" in (ROOT / "deploy" / "Dockerfile").read_text()
+    # clients reach the API only through the proxy; every name the template needs is set
+    assert "ports" not in api and proxy["ports"]
+    needed = set(re.findall(r"\$\{(NEUMATEX_[A-Z_]+)\}", (ROOT / template.split(":")[0]).read_text()))
+    assert needed <= set(proxy["environment"]) and proxy["environment"]["NGINX_ENVSUBST_FILTER"] == "^NEUMATEX_"
 
 
 # -- images ----------------------------------------------------------------------------------------------------

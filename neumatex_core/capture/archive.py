@@ -13,10 +13,16 @@ everything this call wrote is removed.
 from __future__ import annotations
 
 import errno
+import io
+import mmap
 import os
 import stat
+import struct
 import zipfile
-from collections.abc import Sequence
+import zlib
+from collections.abc import Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 from typing import IO
 
@@ -29,6 +35,8 @@ RATIO_CHECK_MIN_BYTES = 1024**2  # small members may compress well (a blank mask
 MAX_NAME_PART_BYTES = 255  # NAME_MAX of common file systems
 MAX_NAME_BYTES = 1024
 _CHUNK = 1024**2
+_LOCAL_HEADER = struct.Struct("<4s5H3L2H")  # signature, versions, flags, method, time, date, crc, sizes, name/extra
+_LOCAL_SIGNATURE = b"PK\x03\x04"
 
 
 class _LimitExceeded(Exception):
@@ -221,53 +229,174 @@ def _extract_members(
     _mkdirs(dest, created)
     root = dest.resolve()
     total = 0
-    for info in infos:
-        rel = safe_member_path(info.filename)
-        assert rel is not None  # checked before extraction
-        target = root / rel
-        if target.resolve() != target or not target.is_relative_to(root):
-            # a folder that already exists in dest links elsewhere
-            raise CaptureError(
-                [Problem(label, f"member {shown_name(info.filename)} would be written outside the folder")]
-            )
-        if info.is_dir():
-            _mkdirs(target, created)
-            continue
-        try:
-            _mkdirs(target.parent, created)
-        except (FileExistsError, NotADirectoryError):
-            raise CaptureError(
-                [Problem(label, f"member {shown_name(info.filename)} is inside a folder that is a file")]
-            ) from None
-        # The member's budget: its declared size (which passed the ratio check) and what is left of the total
-        # (declared sizes can lie; zipfile itself also stops at the declared size and checks the CRC).
-        allowed = min(max_total_bytes - total, info.file_size)
-        try:
-            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
-        except FileExistsError:
-            raise CaptureError(
-                [Problem(label, f"member {shown_name(info.filename)} would overwrite an existing file")]
-            ) from None
-        created.append(target)
-        try:
+    with _stored_copier(archive, label) as stored:
+        for info in infos:
+            total = _extract_member(archive, info, root, label, max_total_bytes, total, created, stored)
+        if stored is not None:
+            stored.check_crcs()
+
+
+def _extract_member(
+    archive: zipfile.ZipFile,
+    info: zipfile.ZipInfo,
+    root: Path,
+    label: str,
+    max_total_bytes: int,
+    total: int,
+    created: list[Path],
+    stored: _StoredCopier | None,
+) -> int:
+    """Extract one checked member under `root`; returns the bytes written so far (`total` plus this member's)."""
+    rel = safe_member_path(info.filename)
+    assert rel is not None  # checked before extraction
+    target = root / rel
+    if target.resolve() != target or not target.is_relative_to(root):
+        # a folder that already exists in dest links elsewhere
+        raise CaptureError(
+            [Problem(label, f"member {shown_name(info.filename)} would be written outside the folder")]
+        )
+    if info.is_dir():
+        _mkdirs(target, created)
+        return total
+    try:
+        _mkdirs(target.parent, created)
+    except (FileExistsError, NotADirectoryError):
+        raise CaptureError(
+            [Problem(label, f"member {shown_name(info.filename)} is inside a folder that is a file")]
+        ) from None
+    # The member's budget: its declared size (which passed the ratio check) and what is left of the total
+    # (declared sizes can lie; zipfile itself also stops at the declared size and checks the CRC).
+    allowed = min(max_total_bytes - total, info.file_size)
+    try:
+        fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    except FileExistsError:
+        raise CaptureError(
+            [Problem(label, f"member {shown_name(info.filename)} would overwrite an existing file")]
+        ) from None
+    created.append(target)
+    try:
+        if info.compress_type == zipfile.ZIP_STORED and stored is not None:
+            with os.fdopen(fd, "wb") as out:
+                total += stored.copy(info, out.fileno(), allowed)
+        else:
             with os.fdopen(fd, "wb") as out, archive.open(info) as src:
                 total += copy_limited(src, out, allowed)
-        except _LimitExceeded:
-            raise CaptureError(
-                [Problem(label, f"member {shown_name(info.filename)} unpacks to more bytes than allowed or declared")]
-            ) from None
-        except OSError as exc:
-            if exc.errno == errno.ENOSPC:
-                raise  # the server's problem (storage full), not the upload's
-            raise CaptureError(
-                [Problem(label, f"member {shown_name(info.filename)} cannot be extracted ({exc.strerror})")]
-            ) from None
-        # zipfile raises NotImplementedError for a compression method it lacks (e.g. deflate64), RuntimeError for
-        # an encrypted member: both are the upload's problem, reported like a corrupt member
-        except (zipfile.BadZipFile, NotImplementedError, RuntimeError, EOFError) as exc:
-            raise CaptureError(
-                [Problem(label, f"member {shown_name(info.filename)} cannot be extracted ({exc})")]
-            ) from None
+    except _LimitExceeded:
+        raise CaptureError(
+            [Problem(label, f"member {shown_name(info.filename)} unpacks to more bytes than allowed or declared")]
+        ) from None
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise  # the server's problem (storage full), not the upload's
+        raise CaptureError(
+            [Problem(label, f"member {shown_name(info.filename)} cannot be extracted ({exc.strerror})")]
+        ) from None
+    # zipfile raises NotImplementedError for a compression method it lacks (e.g. deflate64), RuntimeError for
+    # an encrypted member: both are the upload's problem, reported like a corrupt member
+    except (zipfile.BadZipFile, NotImplementedError, RuntimeError, EOFError) as exc:
+        raise CaptureError(
+            [Problem(label, f"member {shown_name(info.filename)} cannot be extracted ({exc})")]
+        ) from None
+    return total
+
+
+class _StoredCopier:
+    """Stored (uncompressed) members copied by the kernel (os.copy_file_range: no bytes pass through Python)
+    straight from the archive's file, their CRC-32s checked on a second thread meanwhile (zlib releases the GIL),
+    so a large capture unpacks at the speed of the page cache. What zipfile checks is checked here too: the local
+    header (signature, method, the name equal to the central directory's) and that a member's data ends before
+    the next member or the central directory begins (overlapping members are a zip bomb the sizes do not show)."""
+
+    def __init__(self, archive: zipfile.ZipFile, fd: int, label: str):
+        self.fd, self.size, self.label = fd, os.fstat(fd).st_size, label
+        self.view = mmap.mmap(fd, self.size, access=mmap.ACCESS_READ) if self.size else None
+        starts = sorted({i.header_offset for i in archive.infolist()} | {archive.start_dir, self.size})
+        self.end_of = {a: b for a, b in zip(starts, starts[1:], strict=False)}  # header offset -> next one
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="zip-crc")
+        self.crcs: list[tuple[zipfile.ZipInfo, memoryview, Future[int]]] = []
+
+    def _problem(self, info: zipfile.ZipInfo, what: str) -> CaptureError:
+        return CaptureError([Problem(self.label, f"member {shown_name(info.filename)} {what}")])
+
+    def _data_range(self, info: zipfile.ZipInfo) -> tuple[int, int]:
+        """[start, end) of the member's bytes in the archive."""
+        at = info.header_offset
+        head = self.view[at : at + _LOCAL_HEADER.size] if self.view is not None else b""
+        if len(head) != _LOCAL_HEADER.size:
+            raise self._problem(info, "cannot be extracted (its local header is past the end of the archive)")
+        sig, _, flags, method, _, _, _, _, _, name_len, extra_len = _LOCAL_HEADER.unpack(head)
+        assert self.view is not None
+        raw_name = bytes(self.view[at + _LOCAL_HEADER.size : at + _LOCAL_HEADER.size + name_len])
+        name = raw_name.decode("utf-8" if flags & 0x800 else "cp437", "replace")
+        if sig != _LOCAL_SIGNATURE or method != zipfile.ZIP_STORED or name != info.orig_filename:
+            raise self._problem(info, "cannot be extracted (its local header does not match the central directory)")
+        start = at + _LOCAL_HEADER.size + name_len + extra_len
+        end = start + info.file_size
+        if end > self.end_of.get(at, self.size):
+            raise self._problem(info, "overlaps the next member or runs past the archive's end (zip bomb?)")
+        return start, end
+
+    def copy(self, info: zipfile.ZipInfo, out_fd: int, allowed: int) -> int:
+        """Write the stored member to `out_fd`; returns its size. _LimitExceeded over `allowed` bytes."""
+        if info.compress_size != info.file_size:
+            raise self._problem(info, "cannot be extracted (it is stored but declares two different sizes)")
+        if info.file_size > allowed:
+            raise _LimitExceeded
+        start, end = self._data_range(info)
+        pos = start
+        while pos < end:
+            try:
+                n = os.copy_file_range(self.fd, out_fd, end - pos, pos)
+            except OSError as exc:  # no copy_file_range here (EXDEV, ENOSYS, ...): copy through memory
+                if exc.errno not in (errno.EXDEV, errno.ENOSYS, errno.EINVAL, errno.EOPNOTSUPP):
+                    raise
+                assert self.view is not None
+                n = os.write(out_fd, self.view[pos : min(end, pos + _CHUNK)])
+            if n <= 0:
+                raise self._problem(info, "cannot be extracted (the archive ends inside it)")
+            pos += n
+        if self.view is None or start == end:
+            if info.CRC != 0:
+                raise self._problem(info, "is corrupt (CRC-32 mismatch)")
+        else:
+            data = memoryview(self.view)[start:end]
+            self.crcs.append((info, data, self.pool.submit(zlib.crc32, data)))
+        return info.file_size
+
+    def check_crcs(self) -> None:
+        """CaptureError naming every member whose bytes do not match its CRC-32 (waits for the checks)."""
+        bad = [info for info, _, crc in self.crcs if crc.result() != info.CRC]
+        if bad:
+            raise CaptureError([Problem(self.label, f"member {shown_name(i.filename)} is corrupt (CRC-32 mismatch)")
+                                for i in bad])  # fmt: skip
+
+    def close(self) -> None:
+        for _, _, crc in self.crcs:
+            crc.cancel()
+        self.pool.shutdown(wait=True)
+        for _, data, _ in self.crcs:
+            data.release()
+        self.crcs.clear()
+        if self.view is not None:
+            self.view.close()
+
+
+@contextmanager
+def _stored_copier(archive: zipfile.ZipFile, label: str) -> Iterator[_StoredCopier | None]:
+    """A _StoredCopier for an archive read from a regular file (None otherwise: zipfile copies every member)."""
+    try:
+        fd = archive.fp.fileno() if archive.fp is not None else -1
+        regular = fd >= 0 and stat.S_ISREG(os.fstat(fd).st_mode)
+    except (OSError, AttributeError, ValueError, io.UnsupportedOperation):
+        regular = False
+    if not regular:
+        yield None
+        return
+    copier = _StoredCopier(archive, fd, label)
+    try:
+        yield copier
+    finally:
+        copier.close()
 
 
 def _remove(created: list[Path]) -> None:

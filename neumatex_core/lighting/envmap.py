@@ -42,7 +42,17 @@ def check_envmap_pixels(pixels: np.ndarray) -> list[str]:
         out.append(f"environment map has {c} channels; expected 1, 3 (RGB) or 4 (RGBA)")
     if w != 2 * h:
         out.append(f"environment map is {w}x{h} pixels; an equirectangular map is exactly twice as wide as tall")
-    rgb = pixels[:, :, : min(c, 3)].astype(np.float64)
+    rgb = pixels[:, :, : min(c, 3)]
+    if np.isfinite(rgb).all():  # the common case in one pass over the map, without copies (it runs per upload)
+        mean = float(np.abs(rgb).mean(dtype=np.float64))
+        low, high = float(rgb.min()), float(rgb.max())
+        if low < -NEGATIVE_NOISE_FRACTION * mean:
+            n_neg = int((rgb < -NEGATIVE_NOISE_FRACTION * mean).any(axis=2).sum())
+            out.append(f"{n_neg} pixels have negative values (down to {low:.3g}); radiance cannot be negative")
+        if high <= 0.0:
+            out.append("environment map is black everywhere: it would light nothing")
+        return out
+    rgb = rgb.astype(np.float64)
     finite = np.isfinite(rgb)
     n_nan = int(np.isnan(rgb).any(axis=2).sum())
     n_inf = int(np.isinf(rgb).any(axis=2).sum())

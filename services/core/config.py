@@ -46,6 +46,11 @@ class Settings(BaseSettings):
                                          ".obj", ".ply", ".glb", ".gltf", ".mtl", ".txt", ".md")  # fmt: skip
     upload_ttl_s: float = 24 * 3600  # unfinished init/upload sessions are removed after this
     min_free_bytes: int = 1024**3  # uploads stop with 507 (storage full) before the storage's free space drops below
+    # uploads through the reverse proxy (deploy/nginx/, docs/service.md "Uploads through the proxy"): nginx writes
+    # an upload's body to a file in proxy_body_dir and names it in a header with proxy_body_token, a secret it shares
+    # with the API (a client reaching the API directly cannot name a file). Unset: bodies arrive through the API.
+    proxy_body_dir: Path | None = None
+    proxy_body_token: str = ""
 
     # workers
     heartbeat_s: float = 2.0
@@ -98,6 +103,9 @@ class Settings(BaseSettings):
         if self.storage == "s3" and not self.s3_bucket:
             raise ValueError("storage 's3' needs a bucket: set NEUMATEX_S3_BUCKET (and NEUMATEX_S3_ENDPOINT_URL for "
                              "an S3-compatible server such as MinIO)")
+        if self.proxy_body_dir is not None and len(self.proxy_body_token) < 16:
+            raise ValueError("proxy_body_dir is set but proxy_body_token is not (at least 16 characters): set "
+                             "NEUMATEX_PROXY_BODY_TOKEN to the secret the proxy sends (deploy/nginx/)")
         return self
 
     @property

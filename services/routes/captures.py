@@ -13,7 +13,7 @@ import anyio
 from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy import select
 
-from neumatex_core.capture.archive import shown_name
+from neumatex_core.capture.archive import name_problem, safe_member_path, shown_name
 from services import cleanup, quota, uploads
 from services.core.config import get_settings
 from services.core.db import session_scope
@@ -22,30 +22,40 @@ from services.models import Capture, Upload, new_id
 from services.multipart import save_multipart
 from services.routes.deps import Offset, SessionDep, TenantDep
 from services.schemas import CaptureOut, Deleted, UploadInit, UploadOut
-from services.storage import get_storage
+from services.storage import get_storage, start_sync
 
 router = APIRouter(tags=["captures"])
 
 
 async def _receive(request: Request, dest: Path, budget: int) -> tuple[int, int]:
-    """Save a zip body (unpacked safely) or form files under the local folder dest as they arrive; returns (files,
-    bytes received). The free space of dest's disk is checked as bytes are written (507 when it is full)."""
+    """Save a zip body (unpacked safely) or form files under the local folder dest; returns (files, bytes
+    received). The body arrives through the API as it is sent, or was saved to a file by the proxy
+    (uploads.proxied_body_file). The free space of dest's disk is checked as bytes are written (507 when full)."""
     st = get_settings()
     root = dest.parent  # a workspace folder (services/storage.py): it exists
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    body_file = uploads.proxied_body_file(request, st)
+    if body_file is not None and body_file.stat().st_size > budget:
+        raise uploads.too_large(budget)
     with uploads.disk_full_is_507(root, st.min_free_bytes):
         if ctype == "multipart/form-data":
             guard = uploads.space_guard(root, st.min_free_bytes)
-            names, received = await save_multipart(request, dest, budget, st.max_files, guard)
+            body = uploads.file_chunks(body_file) if body_file is not None else request.stream()
+            names, received = await save_multipart(request.headers.get("content-type", ""), body, dest, budget,
+                                                   st.max_files, guard)  # fmt: skip
             uploads.check_suffixes(names, st)
             return len(names), received
         if ctype in ("application/zip", "application/x-zip-compressed", "application/octet-stream"):
-            guard = uploads.space_guard(root, st.min_free_bytes)
-            zip_path = dest.parent / f".{dest.name}.zip"
             t0 = time.perf_counter()
-            received = await uploads.stream_to_file(request.stream(), zip_path, budget, guard)
+            if body_file is not None:
+                zip_path, received = body_file, body_file.stat().st_size
+            else:
+                guard = uploads.space_guard(root, st.min_free_bytes)
+                zip_path = dest.parent / f".{dest.name}.zip"
+                received = await uploads.stream_to_file(request.stream(), zip_path, budget, guard)
             t1 = time.perf_counter()
-            await anyio.to_thread.run_sync(uploads.unpack_zip, zip_path, dest, st, uploads.upload_label(request))
+            await anyio.to_thread.run_sync(uploads.unpack_zip, zip_path, dest, st, uploads.upload_label(request),
+                                           body_file is None)  # fmt: skip
             request.state.timing = {"receive": t1 - t0, "unpack": time.perf_counter() - t1}
             return uploads.count_files(dest)[0], received
     raise ApiError(415, f"unsupported content type {ctype or 'none'!r}: send a zip (application/zip) or a "
@@ -56,6 +66,8 @@ async def _commit(tenant_id: str, folder: Path, name: str, received: int, staged
     """Validate the local folder, check the quota, commit its capture root to captures/<id> and record it (the
     record is the commit's marker: on S3 it is written after every object)."""
     st, storage = get_settings(), get_storage()
+    if storage.local_path("captures") is not None:
+        start_sync(folder)  # to disk while it is validated (the commit waits for it)
     root, frames = await uploads.validate_folder(folder, st)
     files, size = uploads.count_files(root)
     with session_scope() as s:  # the staged bytes of this upload count already when it is a session's
@@ -102,10 +114,13 @@ def list_captures(s: SessionDep, tenant: TenantDep, limit: Annotated[int, Query(
 
 def _check_quota(request: Request, tenant_id: str) -> None:
     """507 before anything is received when the tenant is over its storage quota, or the declared body would not
-    fit (the unpacked size is checked again at commit)."""
+    fit (the unpacked size is checked again at commit). Behind the proxy the body is already in its file, whose
+    size counts."""
+    body_file = uploads.proxied_body_file(request, get_settings())
     length = request.headers.get("content-length", "")
+    declared = body_file.stat().st_size if body_file is not None else int(length) if length.isdigit() else 0
     with session_scope() as s:
-        quota.check_storage(s, tenant_id, int(length) if length.isdigit() else 0)
+        quota.check_storage(s, tenant_id, declared)
 
 
 @router.get("/captures/{capture_id}", response_model=CaptureOut)
@@ -153,33 +168,82 @@ def _upload_of(s: SessionDep, tenant_id: str, upload_id: str) -> Upload:
 
 @router.post("/uploads/{upload_id}/files", response_model=UploadOut, summary="Add files (form or zip) to an upload")
 async def upload_files(upload_id: str, request: Request, tenant: TenantDep) -> Upload:
-    st, storage = get_settings(), get_storage()
-    with session_scope() as s:
-        up = _upload_of(s, tenant.id, upload_id)
-        budget = st.max_upload_bytes - up.bytes
-    uploads.check_content_length(request, budget)
-    _check_quota(request, tenant.id)
-    files_key = _files_key(upload_id)
+    storage = get_storage()
+    budget = _session_budget(tenant.id, upload_id, request)
     base = storage.workspace(f"{uploads.staging_key(upload_id)}/{new_id('part')}")  # merged once all arrived
-    part = base / "files"
     try:
-        files, received = await _receive(request, part, budget)
-        if up.files + files > st.max_files:
-            raise ApiError(413, f"the upload would hold {up.files + files} files; at most {st.max_files} are allowed")
-        twice, clashes = uploads.merge_clashes(part, set(storage.list(files_key)))
-        if twice:
-            more = f" (and {len(twice) - 1} more)" if len(twice) > 1 else ""
-            raise ApiError(409, f"the file {shown_name(twice[0])}{more} was already uploaded",
-                           [{"file": c, "message": "already uploaded"} for c in twice[:50]])
-        if clashes:
-            raise ApiError(422, f"the uploaded file {shown_name(clashes[0])} clashes with an earlier file of the "
-                           "upload: a name cannot be both a file and a folder",
-                           [{"file": c, "message": "both a file and a folder"} for c in clashes[:50]])
-        await anyio.to_thread.run_sync(uploads.merge_part, storage, part, files_key)
+        files, received = await _receive(request, base / "files", budget)
+        return await _add_part(tenant.id, upload_id, base / "files", files, received)
     finally:
         shutil.rmtree(base, ignore_errors=True)
+
+
+@router.put("/uploads/{upload_id}/files/{path:path}", response_model=UploadOut,
+            summary="Add one file, the raw request body, to an upload at `path` inside the capture")
+async def put_upload_file(upload_id: str, path: str, request: Request, tenant: TenantDep) -> Upload:
+    """The way for large files: no form to parse, and behind the proxy (deploy/nginx/) no copy at all, since the
+    proxy's file of the body is hard-linked into place."""
+    st, storage = get_settings(), get_storage()
+    reason = name_problem(path)
+    if reason is not None:
+        raise ApiError(422, f"the file name {shown_name(path)} {reason}",
+                       [{"file": shown_name(path), "message": reason}])  # fmt: skip
+    rel = safe_member_path(path)
+    assert rel is not None
+    uploads.check_suffixes([rel.as_posix()], st)
+    budget = _session_budget(tenant.id, upload_id, request)
+    base = storage.workspace(f"{uploads.staging_key(upload_id)}/{new_id('part')}")
+    try:
+        target = base / "files" / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        body_file = uploads.proxied_body_file(request, st)
+        with uploads.disk_full_is_507(base, st.min_free_bytes):
+            if body_file is not None:
+                received = await anyio.to_thread.run_sync(uploads.adopt_body_file, body_file, target, budget)
+            else:
+                guard = uploads.space_guard(base, st.min_free_bytes)
+                received = await uploads.stream_to_file(request.stream(), target, budget, guard)
+        up = await _add_part(tenant.id, upload_id, base / "files", 1, received)
+        files_dir = storage.local_path(_files_key(upload_id))
+        if files_dir is not None:  # after the rename, which would wait for the flush (ext4 data=ordered)
+            start_sync(files_dir / rel)  # the disk writes it while the client sends the rest (the commit waits)
+        return up
+    finally:
+        shutil.rmtree(base, ignore_errors=True)
+
+
+def _session_budget(tenant_id: str, upload_id: str, request: Request) -> int:
+    """The bytes the session may still take (413 when the request declares more), after the quota check."""
+    st = get_settings()
     with session_scope() as s:
-        up = _upload_of(s, tenant.id, upload_id)
+        up = _upload_of(s, tenant_id, upload_id)
+        budget = st.max_upload_bytes - up.bytes
+    uploads.check_content_length(request, budget)
+    _check_quota(request, tenant_id)
+    return budget
+
+
+async def _add_part(tenant_id: str, upload_id: str, part: Path, files: int, received: int) -> Upload:
+    """Merge a received part (a local folder of `files` files) into the session's files; 413 over the file count,
+    409 a file uploaded before, 422 a name both file and folder."""
+    st, storage = get_settings(), get_storage()
+    files_key = _files_key(upload_id)
+    with session_scope() as s:
+        held = _upload_of(s, tenant_id, upload_id).files + files
+    if held > st.max_files:
+        raise ApiError(413, f"the upload would hold {held} files; at most {st.max_files} are allowed")
+    twice, clashes = uploads.merge_clashes(part, set(storage.list(files_key)))
+    if twice:
+        more = f" (and {len(twice) - 1} more)" if len(twice) > 1 else ""
+        raise ApiError(409, f"the file {shown_name(twice[0])}{more} was already uploaded",
+                       [{"file": c, "message": "already uploaded"} for c in twice[:50]])
+    if clashes:
+        raise ApiError(422, f"the uploaded file {shown_name(clashes[0])} clashes with an earlier file of the "
+                       "upload: a name cannot be both a file and a folder",
+                       [{"file": c, "message": "both a file and a folder"} for c in clashes[:50]])
+    await anyio.to_thread.run_sync(uploads.merge_part, storage, part, files_key)
+    with session_scope() as s:
+        up = _upload_of(s, tenant_id, upload_id)
         up.files += files
         up.bytes += received
         return up

@@ -30,9 +30,9 @@ METRICS_TOKEN = "nmx_test_metrics_token_0123456789"
 class Service(Cluster):
     """The tests' cluster: fast heartbeats and reaping, small upload limits. Its database: `database_url` (e.g. a
     PostgreSQL one from tests/service/postgres.py, passed as NEUMATEX_DATABASE_URL), else SQLite in its data
-    folder."""
+    folder. With `proxy`, nginx in front (services/proxy.py): `url` is the proxy's, `api_url` the API's."""
 
-    def __init__(self, root: Path, database_url: str | None = None):
+    def __init__(self, root: Path, database_url: str | None = None, proxy: bool = False):
         (root / "tmp").mkdir(parents=True, exist_ok=True)  # the processes' TMPDIR, so tests can see what spools there
         self.database_url = database_url or f"sqlite:///{(root / 'data' / 'jobs.db').resolve()}"
         self.database = "postgresql" if self.database_url.startswith("postgresql") else "sqlite"
@@ -42,7 +42,7 @@ class Service(Cluster):
                                 "TMPDIR": str(root / "tmp"), "NEUMATEX_METRICS_TOKEN": METRICS_TOKEN,
                                 # webhooks to a receiver in the test (loopback), retried quickly
                                 "NEUMATEX_WEBHOOK_ALLOW_PRIVATE": "true", "NEUMATEX_WEBHOOK_BACKOFF_S": "0.5",
-                                "NEUMATEX_WEBHOOK_POLL_S": "0.2"})  # fmt: skip
+                                "NEUMATEX_WEBHOOK_POLL_S": "0.2"}, proxy=proxy)  # fmt: skip
         self.env["NEUMATEX_PUBLIC_URL"] = self.url
 
     def client(self, key: str = KEY_A) -> httpx.Client:

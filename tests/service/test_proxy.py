@@ -1,0 +1,125 @@
+"""The reverse proxy in front of the API (deploy/nginx/neumatex.conf.template, services/proxy.py), with a real
+nginx: uploads arrive as the proxy's body files (a zip unpacked from it, a PUT file hard-linked into place), the
+proxy's name for a body file is honoured only with its secret, what nginx refuses itself is answered in the API's
+error format, and no body file outlives its request. Also the raw PUT of one file into an upload session, directly
+to the API."""
+
+from __future__ import annotations
+
+import hashlib
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from neumatex_client.client import Client
+from services.proxy import render
+
+from .helpers import EXAMPLE, KEY_A, Service, capture_zip, upload
+
+
+@pytest.fixture(scope="module")
+def proxied(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
+    svc = Service(tmp_path_factory.mktemp("proxied"), proxy=True)
+    svc.redis.start()
+    svc.add_tenant("a", KEY_A)
+    svc.start_api()
+    yield svc
+    svc.stop()
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}  # fmt: skip
+
+
+def _stored(service: Service, capture_id: str) -> Path:
+    return service.storage / "captures" / capture_id
+
+
+def _no_bodies_left(service: Service) -> None:
+    assert service.proxy_config is not None
+    assert list(service.proxy_config.body_dir.iterdir()) == []
+
+
+def test_a_zip_through_the_proxy_is_unpacked_from_its_body_file(proxied: Service) -> None:
+    with proxied.client() as c:
+        r = upload(c, capture_zip())
+    assert r.status_code == 201, r.text
+    cap = r.json()
+    skip = ("photos", "gbuffers")
+    want = {k: v for k, v in _digests(EXAMPLE).items() if k.split("/")[0] not in skip}
+    assert _digests(_stored(proxied, cap["id"])) == want
+    _no_bodies_left(proxied)
+
+
+def test_the_client_puts_large_files_and_they_arrive_whole(proxied: Service, tmp_path: Path) -> None:
+    folder = tmp_path / "teapot"
+    with zipfile.ZipFile(__import__("io").BytesIO(capture_zip(prefix=""))) as z:
+        z.extractall(folder)
+    (folder / "notes.txt").write_bytes(bytes(range(256)) * 20_000)  # 5 MB: larger than the chunk, so a PUT
+    client = Client(proxied.url, KEY_A)
+    cap = client.upload_capture(folder, chunk_bytes=1 << 20)
+    stored = _stored(proxied, cap.id)
+    assert _digests(stored) == _digests(folder)
+    assert (stored / "notes.txt").stat().st_mode & 0o777 == 0o644
+    assert (stored / "notes.txt").stat().st_nlink == 1  # the proxy's own name for the body file is gone
+    _no_bodies_left(proxied)
+
+
+def test_a_body_file_header_is_refused_without_the_proxys_secret(proxied: Service) -> None:
+    forged = {"X-Neumatex-Body-File": "/etc/passwd", "Content-Type": "application/zip"}
+    with httpx.Client(base_url=proxied.api_url, headers={"Authorization": f"Bearer {KEY_A}"}) as direct:
+        r = direct.post("/v1/captures", content=capture_zip(), headers=forged)
+        assert r.status_code == 400
+        assert "only accepted from this service's proxy" in r.json()["error"]
+        r = direct.post("/v1/captures", content=capture_zip(),
+                        headers={**forged, "X-Neumatex-Body-Token": "guessed-guessed-guessed"})  # fmt: skip
+        assert r.status_code == 400
+    with proxied.client() as c:  # through the proxy the client's headers are replaced: its real body is used
+        r = c.post("/v1/captures", content=capture_zip(), headers={**forged, "X-Neumatex-Body-Token": "x" * 20})
+        assert r.status_code == 201, r.text
+    _no_bodies_left(proxied)
+
+
+def test_what_the_proxy_refuses_is_answered_in_the_apis_format(proxied: Service) -> None:
+    with proxied.client() as c:
+        r = c.post("/v1/captures", content=b"\0" * (9 * 1024**2), headers={"Content-Type": "application/zip"})
+        assert r.status_code == 413
+        assert r.json()["error"] == f"upload larger than the limit of {8 * 1024**2} bytes"
+        bad = capture_zip(extra={"../../escape.txt": b"x"})
+        r = upload(c, bad)
+        assert r.status_code == 422 and "zip-slip" in r.text
+    _no_bodies_left(proxied)
+
+
+def test_put_of_one_file_into_a_session_directly(proxied: Service) -> None:
+    with httpx.Client(base_url=proxied.api_url, headers={"Authorization": f"Bearer {KEY_A}"}) as c:
+        up = c.post("/v1/uploads", json={"name": "put"}).json()
+        url = f"/v1/uploads/{up['id']}/files"
+        assert c.put(f"{url}/notes.txt", content=b"hello").status_code == 200
+        r = c.put(f"{url}/notes.txt", content=b"hello")
+        assert r.status_code == 409 and r.json()["problems"] == [{"file": "notes.txt", "message": "already uploaded"}]
+        r = c.put(f"{url}/notes.txt/inner.txt", content=b"x")
+        assert r.status_code == 422 and "both a file and a folder" in r.json()["error"]
+        r = c.put(f"{url}/run.sh", content=b"x")
+        assert r.status_code == 415
+        r = c.put(f"{url}/..%2F..%2Fescape.txt", content=b"x")
+        assert r.status_code in (404, 422)  # a name escaping the capture never reaches the disk
+        assert c.delete(f"/v1/uploads/{up['id']}").status_code == 204
+
+
+def test_the_template_fills_only_its_own_names() -> None:
+    out = render("listen ${NEUMATEX_PROXY_LISTEN}; set $x $request_body_file;", {"NEUMATEX_PROXY_LISTEN": "80"})
+    assert out == "listen 80; set $x $request_body_file;"
+    with pytest.raises(KeyError, match="NEUMATEX_API_UPSTREAM"):
+        render("server ${NEUMATEX_API_UPSTREAM};", {})
+
+
+def test_a_proxy_body_dir_needs_the_secret(tmp_path: Path) -> None:
+    from services.core.config import Settings
+
+    with pytest.raises(ValueError, match="NEUMATEX_PROXY_BODY_TOKEN"):
+        Settings(proxy_body_dir=tmp_path)
