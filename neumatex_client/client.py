@@ -18,10 +18,12 @@ import functools
 import json
 import os
 import random
+import threading
 import time
 import uuid
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -70,19 +72,32 @@ def _capture_files(folder: Path, exclude: Iterable[str]) -> list[tuple[str, Path
 
 
 
-def _report(progress: Callable[[int, int], None] | None, before: int, total: int, sent: int) -> None:
-    if progress:
-        progress(before + sent, total)
+class _Progress:
+    """Bytes sent so far, added to from several threads; `report(sent, total)` after each addition."""
+
+    def __init__(self, total: int, report: Callable[[int, int], None] | None):
+        self.total, self.report, self.sent = total, report, 0
+        self._lock = threading.Lock()
+
+    def add(self, n: int) -> None:
+        with self._lock:
+            self.sent += n
+            if self.report:
+                self.report(self.sent, self.total)
 
 
-def _file_stream(src: Path, progress: Callable[[int], None]) -> Iterator[bytes]:
-    """The file's bytes in READ_BYTES blocks, `progress(bytes sent so far)` after each."""
-    sent = 0
+def _file_body(src: Path, on_block: Callable[[int], None]) -> dict[str, Any]:
+    """A request's content: the file streamed (a fresh stream for each try)."""
+    return {"content": _file_stream(src, on_block)}
+
+
+def _file_stream(src: Path, on_block: Callable[[int], None]) -> Iterator[bytes]:
+    """The file's bytes in READ_BYTES blocks, `on_block(its size)` after each."""
     with open(src, "rb") as f:
         while block := f.read(READ_BYTES):
-            sent += len(block)
-            progress(sent)
+            on_block(len(block))
             yield block
+
 
 class Client:
     """The NeuMatEx job service at `url` with one tenant's `api_key` (default: $NEUMATEX_API_KEY)."""
@@ -173,18 +188,21 @@ class Client:
         if not (src / "transforms.json").is_file():
             raise NeuMatExError(f"{path} is neither a capture folder (no transforms.json in it) nor a .zip")
         files = _capture_files(src, exclude)
-        total, sent = sum(p.stat().st_size for _, p in files), 0
+        total = sum(p.stat().st_size for _, p in files)
         up = Upload.model_validate(self._json("POST", "/v1/uploads", json={"name": label}))
+        sent = _Progress(total, progress)
         try:
             large = [(rel, p) for rel, p in files if p.stat().st_size > chunk_bytes]
-            for chunk in self._chunks([f for f in files if f not in large], chunk_bytes):
-                self._upload_chunk(up.id, chunk)
-                sent += sum(p.stat().st_size for _, p in chunk)
-                if progress:
-                    progress(sent, total)
-            for rel, p in large:  # last: the server flushes each to disk while the next one arrives
-                self._put_file(up.id, rel, p, functools.partial(_report, progress, sent, total))
-                sent += p.stat().st_size
+            # the large files on a second connection while the forms go on this one: the server handles a form
+            # while its proxy receives a large file
+            with ThreadPoolExecutor(1, thread_name_prefix="neumatex-put") as pool:
+                puts = pool.submit(self._put_files, up.id, large, sent)
+                for chunk in self._chunks([f for f in files if f not in large], chunk_bytes):
+                    if puts.done():
+                        puts.result()  # a failed PUT stops the upload now
+                    self._upload_chunk(up.id, chunk)
+                    sent.add(sum(p.stat().st_size for _, p in chunk))
+                puts.result()
             return Capture.model_validate(self._json("POST", f"/v1/uploads/{up.id}/commit"))
         except BaseException:
             try:  # the staged files count against the quota: drop them
@@ -219,22 +237,23 @@ class Client:
             if {p.get("file") for p in exc.problems} != {rel for rel, _ in chunk}:
                 raise
 
-    def _put_file(self, upload_id: str, rel: str, src: Path, progress: Callable[[int], None]) -> None:
-        """PUT one file as the raw body (streamed from disk); a 409 naming it means an earlier try stored it."""
-        try:
-            self.request("PUT", f"/v1/uploads/{upload_id}/files/{quote(rel)}",
-                         headers={"Content-Type": "application/octet-stream",
-                                  "Content-Length": str(src.stat().st_size)},
-                         body=lambda: {"content": _file_stream(src, progress)})  # fmt: skip
-        except Conflict as exc:
-            if {p.get("file") for p in exc.problems} != {rel}:
-                raise
+    def _put_files(self, upload_id: str, files: list[tuple[str, Path]], sent: _Progress) -> None:
+        """PUT each file as the raw body (streamed from disk); a 409 naming it means an earlier try stored it."""
+        for rel, src in files:
+            try:
+                self.request("PUT", f"/v1/uploads/{upload_id}/files/{quote(rel)}",
+                             headers={"Content-Type": "application/octet-stream",
+                                      "Content-Length": str(src.stat().st_size)},
+                             body=functools.partial(_file_body, src, sent.add))  # fmt: skip
+            except Conflict as exc:
+                if {p.get("file") for p in exc.problems} != {rel}:
+                    raise
 
     def _upload_zip(self, src: Path, name: str, progress: Callable[[int, int], None] | None) -> Capture:
         total = src.stat().st_size
 
-        def body() -> dict[str, Any]:
-            return {"content": _file_stream(src, functools.partial(_report, progress, 0, total))}
+        def body() -> dict[str, Any]:  # each try counts from 0
+            return _file_body(src, _Progress(total, progress).add)
 
         headers = {"Content-Type": "application/zip", "Content-Length": str(total),
                    "Content-Disposition": f'attachment; filename="{src.name}"'}  # fmt: skip

@@ -5,7 +5,7 @@ endless body is cut at the limit with nothing spooled to TMPDIR. Non-file fields
 from __future__ import annotations
 
 from collections.abc import AsyncIterator, Callable
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import IO
 
 from python_multipart.exceptions import MultipartParseError
@@ -53,12 +53,7 @@ class _FormWriter:
             self._out = None  # a plain field: ignored
             return
         name = raw.decode("utf-8", "surrogateescape")
-        reason = name_problem(name)
-        if reason is not None:
-            raise ApiError(422, f"the uploaded file {shown(name)} {reason}",
-                           [{"file": shown(name), "message": reason}])  # fmt: skip
-        rel = safe_member_path(name)
-        assert rel is not None
+        rel = checked_name(name)
         if len(self.files) >= self.max_files:
             raise ApiError(413, f"too many files in one request; at most {self.max_files} are allowed")
         target = self.dest / rel
@@ -95,6 +90,16 @@ class _FormWriter:
         if self._out is not None:
             self._out.close()
             self._out = None
+
+
+def checked_name(name: str) -> PurePosixPath:
+    """An uploaded file's path inside the capture; 422 naming it when it is unusable (neumatex_core's rules)."""
+    reason = name_problem(name)
+    if reason is not None:
+        raise ApiError(422, f"the uploaded file {shown(name)} {reason}", [{"file": shown(name), "message": reason}])
+    rel = safe_member_path(name)
+    assert rel is not None
+    return rel
 
 
 def too_large(limit: int) -> ApiError:

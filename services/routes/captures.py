@@ -13,13 +13,13 @@ import anyio
 from fastapi import APIRouter, Query, Request, Response
 from sqlalchemy import select
 
-from neumatex_core.capture.archive import name_problem, safe_member_path, shown_name
+from neumatex_core.capture.archive import shown_name
 from services import cleanup, quota, uploads
 from services.core.config import get_settings
 from services.core.db import session_scope
 from services.errors import ApiError, not_found
 from services.models import Capture, Upload, new_id
-from services.multipart import save_multipart
+from services.multipart import checked_name, save_multipart
 from services.routes.deps import Offset, SessionDep, TenantDep
 from services.schemas import CaptureOut, Deleted, UploadInit, UploadOut
 from services.storage import get_storage, start_sync
@@ -184,12 +184,7 @@ async def put_upload_file(upload_id: str, path: str, request: Request, tenant: T
     """The way for large files: no form to parse, and behind the proxy (deploy/nginx/) no copy at all, since the
     proxy's file of the body is hard-linked into place."""
     st, storage = get_settings(), get_storage()
-    reason = name_problem(path)
-    if reason is not None:
-        raise ApiError(422, f"the file name {shown_name(path)} {reason}",
-                       [{"file": shown_name(path), "message": reason}])  # fmt: skip
-    rel = safe_member_path(path)
-    assert rel is not None
+    rel = checked_name(path)
     uploads.check_suffixes([rel.as_posix()], st)
     budget = _session_budget(tenant.id, upload_id, request)
     base = storage.workspace(f"{uploads.staging_key(upload_id)}/{new_id('part')}")
