@@ -4,13 +4,16 @@ capture), and the NodeODM-style session POST /v1/uploads, POST /v1/uploads/{id}/
 
 from __future__ import annotations
 
+import json
+import re
 import shutil
 import time
 from pathlib import Path
 from typing import Annotated
+from urllib.parse import unquote
 
 import anyio
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from sqlalchemy import select
 
 from neumatex_core.capture.archive import shown_name
@@ -20,7 +23,7 @@ from services.core.db import session_scope
 from services.errors import ApiError, not_found
 from services.models import Capture, Upload, new_id
 from services.multipart import checked_name, save_multipart
-from services.routes.deps import Offset, SessionDep, TenantDep
+from services.routes.deps import Offset, SessionDep, TenantDep, current_tenant
 from services.schemas import CaptureOut, Deleted, UploadInit, UploadOut
 from services.storage import get_storage, start_sync
 
@@ -103,6 +106,30 @@ async def create_capture(request: Request, response: Response, tenant: TenantDep
         return cap
     finally:
         shutil.rmtree(base, ignore_errors=True)
+
+
+@router.get("/upload-check", include_in_schema=False, status_code=204)
+def upload_check(request: Request, s: SessionDep, x_original_uri: Annotated[str, Header()] = "",
+                 x_declared_length: Annotated[str, Header()] = "") -> Response:
+    """Asked by the proxy (deploy/nginx/, `auth_request`) before it reads an upload's body: 204 when the caller's
+    key (or session) is good, the upload session is theirs, the declared size fits the limit and the quota. A
+    refusal is a 401 (bad key) or a 403 carrying the real answer in X-Neumatex-Refusal-Status and, as the body
+    the proxy sends, X-Neumatex-Refusal: 404, 413 or 507, the same words as the upload route would say."""
+    try:
+        tenant = current_tenant(request, s, request.headers.get("authorization"), request.headers.get("x-api-key"))
+        declared = int(x_declared_length) if x_declared_length.isdigit() else 0
+        budget = get_settings().max_upload_bytes
+        session = re.match(r"^/v1/uploads/([^/?]+)/files", x_original_uri)
+        if session is not None:
+            budget -= _upload_of(s, tenant.id, unquote(session.group(1))).bytes
+        if declared > budget:
+            raise uploads.too_large(budget)
+        quota.check_storage(s, tenant.id, declared)
+    except ApiError as exc:
+        return Response(status_code=401 if exc.status_code == 401 else 403, headers={
+            "X-Neumatex-Refusal": json.dumps(exc.detail, ensure_ascii=True),
+            "X-Neumatex-Refusal-Status": str(exc.status_code)})  # fmt: skip
+    return Response(status_code=204)
 
 
 @router.get("/captures", response_model=list[CaptureOut])

@@ -127,3 +127,54 @@ def test_a_proxy_body_dir_needs_the_secret(tmp_path: Path) -> None:
 
     with pytest.raises(ValueError, match="NEUMATEX_PROXY_BODY_TOKEN"):
         Settings(proxy_body_dir=tmp_path)
+
+
+def _raw_request(url: str, head: str, timeout: float = 10) -> bytes:
+    """Send only the request's head (no body) and return what the server answers within `timeout`."""
+    import socket
+    from urllib.parse import urlparse
+
+    u = urlparse(url)
+    with socket.create_connection((u.hostname, u.port), timeout=timeout) as sock:
+        sock.sendall(head.encode())
+        answer = b""
+        while b"\r\n\r\n" not in answer:
+            chunk = sock.recv(65536)
+            if not chunk:
+                break
+            answer += chunk
+        return answer
+
+
+def test_the_proxy_refuses_before_reading_a_body(proxied: Service) -> None:
+    # a declared 6 MiB body that is never sent: the refusal must come anyway (nginx asked the API first)
+    head = ("POST /v1/captures HTTP/1.1\r\nHost: x\r\nContent-Type: application/zip\r\n"
+            f"Content-Length: {6 * 1024**2}\r\n\r\n")  # fmt: skip
+    answer = _raw_request(proxied.url, head)
+    assert answer.startswith(b"HTTP/1.1 401"), answer[:200]
+    assert b"WWW-Authenticate: Bearer" in answer
+    answer = _raw_request(proxied.url, head.replace("Host: x", "Host: x\r\nX-API-Key: nmx_unknown_key_0123456789"))
+    assert answer.startswith(b"HTTP/1.1 401"), answer[:200]
+    with proxied.client() as c:
+        r = c.post("/v1/captures", content=b"x" * 1000, headers={"Authorization": "Bearer nope"})
+        assert r.status_code == 401 and r.json() == {"error": "unknown or revoked API key"}
+        r = c.put("/v1/uploads/upl_nope/files/notes.txt", content=b"x")
+        assert r.status_code == 404 and r.json() == {"error": "upload 'upl_nope' not found"}
+        up = c.post("/v1/uploads", json={"name": "budget"}).json()
+        assert c.put(f"/v1/uploads/{up['id']}/files/a.txt", content=b"a" * (5 * 1024**2)).status_code == 200
+        r = c.put(f"/v1/uploads/{up['id']}/files/b.txt", content=b"b" * (4 * 1024**2))  # over what is left
+        assert r.status_code == 413
+        assert r.json()["error"] == f"upload larger than the limit of {3 * 1024**2} bytes (3.0 MiB)"
+        assert c.delete(f"/v1/uploads/{up['id']}").status_code == 204
+    _no_bodies_left(proxied)
+
+
+def test_the_dashboards_cookie_uploads_through_the_proxy(proxied: Service) -> None:
+    csrf = {"X-NeuMatEx-CSRF": "1"}
+    with httpx.Client(base_url=proxied.url, timeout=60) as browser:
+        assert browser.post("/v1/session", json={"api_key": KEY_A}, headers=csrf).status_code == 200
+        r = browser.post("/v1/captures", content=capture_zip(), headers={"Content-Type": "application/zip", **csrf})
+        assert r.status_code == 201, r.text
+        r = browser.post("/v1/captures", content=capture_zip(), headers={"Content-Type": "application/zip"})
+        assert r.status_code == 403 and "X-NeuMatEx-CSRF" in r.json()["error"]  # the API still checks the request
+    _no_bodies_left(proxied)
