@@ -84,8 +84,7 @@ def api_command(host: str, port: int) -> list[str]:
 
 def proxy_config(host: str, port: int, data_dir: Path, max_upload_bytes: int) -> ProxyConfig | None:
     """nginx in front of the API on `host:port` (services/proxy.py), or None when nginx is not installed."""
-    from services.cluster import free_port
-    from services.proxy import ProxyConfig, nginx_path
+    from services.proxy import ProxyConfig, free_port, nginx_path
 
     if nginx_path() is None:
         return None

@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -19,17 +18,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from services.proxy import ProxyConfig, free_port
+
 REPO = Path(__file__).resolve().parents[1]
 
 FAST = {"NEUMATEX_HEARTBEAT_S": "0.5", "NEUMATEX_STALE_AFTER_S": "4", "NEUMATEX_REAPER_EVERY_S": "1",
         "NEUMATEX_REDISPATCH_AFTER_S": "3", "NEUMATEX_PROGRESS_EVERY_S": "0.1",
         "NEUMATEX_PARTIAL_STORE_EVERY_S": "1"}  # fmt: skip
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_for(check: Callable[[], Any], timeout: float, what: str, every: float = 0.1) -> Any:
@@ -116,8 +111,6 @@ class Cluster:
     """Redis, the API and workers sharing one environment (data folder, database, broker)."""
 
     def __init__(self, root: Path, env: dict[str, str] | None = None, proxy: bool = False):
-        from services.proxy import ProxyConfig
-
         self.root = root
         self.redis = Redis(root / "redis")
         self.port = free_port()

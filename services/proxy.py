@@ -12,6 +12,7 @@ import os
 import re
 import secrets
 import shutil
+import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -77,6 +78,13 @@ class ProxyConfig:
             raise RuntimeError("nginx not found: `make sysdeps` installs it (apt-get install nginx-light)")
         f = self.folder
         return [exe, "-p", str(f), "-e", str(f / "error.log"), "-c", str(f / "nginx.conf")]
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
 def nginx_path() -> str | None:
