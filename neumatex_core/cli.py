@@ -377,8 +377,8 @@ def main(argv: list[str] | None = None) -> int:
     import_sub = p_import.add_subparsers(dest="import_format", required=True)
     add_config_arguments(import_sub.add_parser("colmap", help=(ImportColmapConfig.__doc__ or "").split("\n")[0],
                                                description=ImportColmapConfig.__doc__), ImportColmapConfig)
-    p_serve = sub.add_parser("serve", help="the job service on this machine: redis-server, the API and one worker "
-                             "(python -m services serve; prints the dashboard URL)")  # fmt: skip
+    p_serve = sub.add_parser("serve", help="the job service on this machine: redis-server, nginx, the API and one "
+                             "worker (python -m services serve; prints the dashboard URL)")  # fmt: skip
     p_serve.add_argument("args", nargs=argparse.REMAINDER, help="passed on to `python -m services serve`")
     for name, text in CLIENT_COMMANDS.items():
         sub.add_parser(name, help=text, add_help=False)  # listed here; parsed by neumatex_client.cli

@@ -1,11 +1,11 @@
 """`python -m services serve|api|worker|beat|create-tenant|set-limits|reap` (also `make serve`).
 
-serve: starts redis-server (from apt) when nothing answers at NEUMATEX_REDIS_URL, the API (uvicorn), one Celery
-worker and Celery beat (which sends the reaper's task, services/reaper.py) on this machine with the embedded
-defaults (SQLite, local storage under data/service), creates a
-tenant with a printed API key unless NEUMATEX_BOOTSTRAP_API_KEY is set, and prints the dashboard URL. It
-supervises them (services/supervisor.py): a child that dies is restarted, and one that keeps dying stops
-everything with the reason printed.
+serve: starts redis-server (from apt) when nothing answers at NEUMATEX_REDIS_URL, nginx in front of the API when
+it is installed (services/proxy.py; --no-proxy: the API alone), the API (uvicorn), one Celery worker and Celery
+beat (which sends the reaper's task, services/reaper.py) on this machine with the embedded defaults (SQLite, local
+storage under data/service), creates a tenant with a printed API key unless NEUMATEX_BOOTSTRAP_API_KEY is set, and
+prints the dashboard URL. It supervises them (services/supervisor.py): a child that dies is restarted, and one that
+keeps dying stops everything with the reason printed.
 """
 
 from __future__ import annotations
