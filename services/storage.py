@@ -81,13 +81,8 @@ def sync_tree(folder: Path) -> None:
     """fsync every file under `folder` and the folders themselves (the data, then the names); `folder` may be
     a single file."""
     for path in [folder, *(sorted(folder.rglob("*")) if folder.is_dir() else [])]:
-        if path.is_symlink():
-            continue
-        fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if path.is_dir() else 0))
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        if not path.is_symlink():
+            _fsync(path)
 
 
 def start_sync(path: Path) -> None:
@@ -105,7 +100,11 @@ def start_sync(path: Path) -> None:
 
 def sync_tree_name(path: Path) -> None:
     """fsync the folder holding `path`, so that its (new) name is on disk."""
-    fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)
+    _fsync(path.parent)
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if path.is_dir() else 0))
     try:
         os.fsync(fd)
     finally:

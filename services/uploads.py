@@ -98,10 +98,14 @@ def proxied_body_file(request: Request, settings: Settings) -> Path | None:
     """The file in which the reverse proxy saved this request's body, or None when the body comes through the API.
 
     Honoured only with the proxy's secret (Settings.proxy_body_token) and for a regular file inside
-    Settings.proxy_body_dir, so a client reaching the API directly cannot make it read another file (400)."""
+    Settings.proxy_body_dir, so a client reaching the API directly cannot make it read another file (400). Checked
+    once per request (the routes ask more than once)."""
     name = request.headers.get(BODY_FILE_HEADER, "")
     if not name:
         return None
+    checked: Path | None = getattr(request.state, "proxied_body_file", None)
+    if checked is not None:
+        return checked
     token = request.headers.get(BODY_TOKEN_HEADER, "")
     folder = settings.proxy_body_dir
     if folder is None or not hmac.compare_digest(token.encode(), settings.proxy_body_token.encode()):
@@ -116,6 +120,7 @@ def proxied_body_file(request: Request, settings: Settings) -> Path | None:
     if not regular:
         raise ApiError(500, "the proxy named a request body file that is not in its body folder; check that "
                        "NEUMATEX_PROXY_BODY_DIR is the proxy's client_body_temp_path (deploy/nginx/)")
+    request.state.proxied_body_file = path
     return path
 
 
