@@ -14,13 +14,14 @@ import pytest
 import torch
 from tto_fixtures import Example, gbuffer_mse, load_example, random_prediction
 
+from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.eval import GroundTruth, gbuffer_psnr, truth_lookup
 from neumatex_core.fields import Triplane
 from neumatex_core.lmrm.inference import LMRMPrediction
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
 from neumatex_core.tto import Anchor, TTOConfig, build_problem, optimise, oracle_weights, uncertainty_weights
-from neumatex_core.tto.loss import regulariser
+from neumatex_core.tto.loss import photometric_loss, regulariser
 from neumatex_core.tto.optimise import step_generator
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
@@ -67,6 +68,48 @@ def test_tto_lowers_photometric_loss_and_moves_gbuffers_toward_truth(example, tr
     scores = gbuffer_psnr(lambda p: result.params.gbuffer(p, None), gt)
     assert scores["psnr_basecolor"] == pytest.approx(10 * math.log10(1 / rho1), abs=1e-3)
     assert scores["psnr_latents"] == pytest.approx(10 * math.log10(1 / lat1), abs=1e-3)
+
+
+@pytest.mark.parametrize("kind", ["l2", "decorrelated"])
+def test_decorrelated_photo_loss_has_no_variance_bias(kind):
+    """A pixel whose samples are theta * X, X in {0, 2} with equal odds (mean 1, variance 1), against a photo of
+    0.2 (theta* = 0.2), 8 spp, linear tonemap. The squared error of the 8-sample mean has expectation
+    (theta - 0.2)^2 + theta^2 / 8, so its gradient at theta* is 2 * 0.2 / 8 = 0.05 (the variance pulls theta down);
+    the decorrelated loss's gradient there is 0. Means over 40 independent batches of 4096 pixels, judged against
+    their own standard error."""
+    spp, n, batches = 8, 4096, 40
+    g = torch.Generator().manual_seed(3)
+    grads = []
+    for _ in range(batches):
+        theta = torch.tensor(0.2, requires_grad=True)
+        x = 2.0 * torch.randint(0, 2, (n * spp, 1), generator=g).float().expand(-1, 3)
+        objective, mse = photometric_loss(theta * x, torch.full((n, 3), 0.2), spp, Tonemap(transfer="linear"),
+                                          kind=kind)  # fmt: skip
+        (grad,) = torch.autograd.grad(objective, theta)
+        grads.append(float(grad))
+        assert not mse.requires_grad
+    mean = sum(grads) / batches
+    se = math.sqrt(sum((v - mean) ** 2 for v in grads) / (batches - 1) / batches)
+    if kind == "l2":
+        assert abs(mean - 0.05) < 4 * se and mean > 8 * se, (mean, se)
+    else:
+        assert abs(mean) < 4 * se and se < 0.005, (mean, se)
+
+
+def test_decorrelated_photo_loss_logs_the_full_pixel_error():
+    """Both kinds log the same mse (of the spp-sample mean); the decorrelated objective is the product of the two
+    halves' errors, so it differs from that mse and can be negative."""
+    radiance = torch.tensor([[0.1] * 3, [0.5] * 3, [0.3] * 3, [0.0] * 3])  # 2 pixels x 2 spp
+    target = torch.tensor([[0.3] * 3, [0.2] * 3])
+    tonemap = Tonemap(transfer="linear")
+    l2, mse = photometric_loss(radiance, target, 2, tonemap)
+    dec, mse_d = photometric_loss(radiance, target, 2, tonemap, kind="decorrelated")
+    assert float(mse) == pytest.approx(float(l2)) == pytest.approx(float(mse_d)) == pytest.approx(0.00125)
+    assert float(dec) == pytest.approx(((0.1 - 0.3) * (0.5 - 0.3) + (0.3 - 0.2) * (0.0 - 0.2)) / 2)
+    with pytest.raises(ValueError, match="spp >= 2"):
+        photometric_loss(radiance, target.repeat(2, 1), 1, tonemap, kind="decorrelated")
+    with pytest.raises(ValueError, match="spp >= 2"):
+        TTOConfig.preset("cpu", photo_loss="decorrelated", spp=1).check()
 
 
 def test_regulariser_weights_are_exp_minus_log_var():

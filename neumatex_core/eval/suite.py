@@ -66,6 +66,8 @@ ROW_NAMES = {
     "pbr_start_bsdf_lr02": "neural from the PBR solution refined in BSDF space, anchored, neural lr x 1/10",
     "pbr_avg": "PBR baseline, mean iterate of the last half",
     "pbr_start_anchor_01_avg": "neural from the PBR solution, anchored (lambda 0.1), mean iterate of each phase's tail",
+    "pbr_decorrelated": "PBR baseline, decorrelated photometric loss",
+    "pbr_start_anchor_01_decorrelated": "neural from the PBR solution, anchored (0.1), decorrelated photometric loss",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -88,6 +90,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                    "tto_minutes"),
     "averaging": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
                   "tto_minutes"),
+    "decorrelated": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                     "psnr_relight_clean", "tto_minutes"),
 }
 TABLE_TITLES = {
     "table1": "Table 1: PBR baseline vs neural material",
@@ -99,6 +103,7 @@ TABLE_TITLES = {
     "start_anchor": "Anchored to the PBR start (issue 14): relighting",
     "bsdf_start": "The PBR start refined in BSDF space, and the neural phase's step size (issue 14)",
     "averaging": "Iterate averaging: the mean of the last half of the steps as the result (issue 14)",
+    "decorrelated": "The photometric loss without the render's variance: two independent half-estimates (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")
 

@@ -14,7 +14,9 @@ solution held near its start (reg "start", weight 1, at two strengths), for reli
 default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`, tto/pbr_start.py
 `refine_to_pbr_bsdf`), in the default basis and in basis v2, and with the neural phase's learning rate at 1/4
 and 1/10 of the preset's (`neural_lr_scale`). Averaging (issue 14): PBR and that default with the result the mean
-iterate of the last half of each phase (`average_tail`).
+iterate of the last half of each phase (`average_tail`). Decorrelated (issue 14): PBR and that default with the
+photometric loss of two independent half-estimates per pixel (`photo_loss`, tto/loss.py), so the render's Monte
+Carlo variance no longer pulls the material towards what renders with less noise.
 """
 
 from __future__ import annotations
@@ -57,6 +59,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
                             "neural_lr_scale": 0.1},
     "pbr_avg": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "average_tail": 0.5},
     "pbr_start_anchor_01_avg": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "average_tail": 0.5},
+    "pbr_decorrelated": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr",
+                         "photo_loss": "decorrelated"},
+    "pbr_start_anchor_01_decorrelated": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
+                                         "photo_loss": "decorrelated"},
     "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
@@ -72,6 +78,7 @@ TABLES: dict[str, list[str]] = {
     "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
                    "pbr_start_bsdf_lr05", "pbr_start_bsdf_lr02"],
     "averaging": ["pbr", "pbr_avg", "pbr_start_anchor_01", "pbr_start_anchor_01_avg"],
+    "decorrelated": ["pbr", "pbr_decorrelated", "pbr_start_anchor_01", "pbr_start_anchor_01_decorrelated"],
 }
 
 

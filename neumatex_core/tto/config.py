@@ -15,6 +15,8 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
 - estimator: "path" (default: every step path traces its pixels) or "cached" (the light transport of `cache_pixels`
   photo pixels is cached every `cache_every` steps, `render/transport_cache.py`, and each step re-evaluates only
   the material; cheaper steps, but it measured worse at equal time so far: docs/design-notes.md, item 22);
+- photo_loss: "l2" (the paper's: the squared error of each pixel's spp-sample mean) or "decorrelated" (the product
+  of two independent half-estimates' errors, so the render's Monte Carlo variance adds no gradient; tto/loss.py);
 - basis: "" (the default neural basis) or the id of another installed basis (materials/data/bases/; with init
   "pbr" or "random" and reg "none", since the LMRM's latents are the default basis's: docs/design-notes.md, item 25).
 """
@@ -26,6 +28,7 @@ from typing import Any, Literal
 
 from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
 from neumatex_core.materials.neural_basis import installed_bases
+from neumatex_core.tto.loss import PhotoLossKind
 
 FieldKind = Literal["triplane", "uv"]
 InitKind = Literal["lmrm", "random", "pbr"]
@@ -112,6 +115,7 @@ class TTOConfig:
     basis: str = ""
     photo_exposure: bool = False
     exposure_lr: float = 0.05
+    photo_loss: PhotoLossKind = "l2"
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:
@@ -139,6 +143,9 @@ class TTOConfig:
                              f"field='triplane', got {self.material!r} and {self.field!r}")
         if self.basis and self.basis not in installed_bases():
             raise ValueError(f"TTO basis={self.basis!r} is not installed (installed: {', '.join(installed_bases())})")
+        if self.photo_loss == "decorrelated" and self.spp < 2:
+            raise ValueError(f"TTO photo_loss='decorrelated' splits each pixel's samples in two: it needs spp >= 2, "
+                             f"got {self.spp}")
         if self.reg == "start" and self.init != "pbr":
             raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")
         if self.basis and (self.init == "lmrm" or self.reg not in ("none", "start")):

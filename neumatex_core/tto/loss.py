@@ -1,7 +1,12 @@
 """TTO's objective (paper eq. 9-11): L = L_photo + lambda_reg * L_reg.
 
 - L_photo: mean over pixels and channels of (T(s * render) - photo)^2, T the capture's tonemap (display values) and
-  s the pixel's photo's exposure multiplier (given by the capture, times the one TTO fits with `photo_exposure`);
+  s the pixel's photo's exposure multiplier (given by the capture, times the one TTO fits with `photo_exposure`).
+  With a Monte Carlo render r^ its expectation is (E[T(s r^)] - photo)^2 + Var(T(s r^)), and the variance term's
+  gradient pulls the material towards what renders with less noise (dimmer, blurrier highlights). The
+  "decorrelated" form (Azinovic et al. 2019, "Inverse Path Tracing") multiplies the errors of two independent
+  halves of each pixel's samples, (T(s a^) - photo)(T(s b^) - photo), whose expectation is the squared error of
+  the expected render alone (docs/design-notes.md, item 28);
 - L_reg: mean over surface points p and channels c of w_c(p) (G_c(p) - A_c(p))^2, where A is the anchor (the LMRM's
   G-buffers at p) and w the per-channel weights: exp(-log_var) of the LMRM's uncertainty ("uncertainty"),
   1 / max(e^2, eps) with e the LMRM's actual error against ground truth ("oracle"), or 0 ("none").
@@ -11,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 
@@ -20,15 +26,30 @@ ORACLE_EPS = 1e-4  # floor of the oracle's squared error (a perfect LMRM channel
 LOG_VAR_MIN = -12.0  # floor of the predicted log-variances: weights at most e^12
 
 
+PhotoLossKind = Literal["l2", "decorrelated"]
+
+
 def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, tonemap: Tonemap,
-                     scale: torch.Tensor | None = None) -> torch.Tensor:
-    """L_photo of path samples radiance [n * spp, 3] (linear, samples of one pixel contiguous) against target
-    display values [n, 3]: mean of (T(scale * mean over the spp samples) - target)^2; scale [n] (unitless): each
-    pixel's photo's exposure multiplier on top of T's (None: 1)."""
-    pixel = radiance.reshape(-1, spp, 3).mean(1)
-    if scale is not None:
-        pixel = pixel * scale.unsqueeze(-1)
-    return ((tonemap.apply(pixel) - target) ** 2).mean()
+                     scale: torch.Tensor | None = None, kind: PhotoLossKind = "l2"
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """L_photo of path samples radiance [n * spp, 3] (linear, samples of one pixel contiguous and independent)
+    against target display values [n, 3]; scale [n] (unitless): each pixel's photo's exposure multiplier on top of
+    T's (None: 1). Returns (objective, mse): the objective TTO descends and, detached, the mean of
+    (T(scale * mean over the spp samples) - target)^2, what TTO logs. kind "l2": the objective is that mse;
+    "decorrelated" (spp >= 2): the mean of (T(scale * a) - target)(T(scale * b) - target) with a, b the means of
+    the first spp // 2 and the other samples, an unbiased estimate of the squared error of the expected render."""
+    samples = radiance.reshape(-1, spp, 3)
+    s = 1.0 if scale is None else scale.reshape(-1, 1)
+    error = tonemap.apply(samples.mean(1) * s) - target
+    mse = (error * error).mean()
+    if kind == "l2":
+        return mse, mse.detach()
+    if spp < 2:
+        raise ValueError(f"the decorrelated photometric loss needs spp >= 2, got {spp}")
+    half = spp // 2
+    error_a = tonemap.apply(samples[:, :half].mean(1) * s) - target
+    error_b = tonemap.apply(samples[:, half:].mean(1) * s) - target
+    return (error_a * error_b).mean(), mse.detach()
 
 
 @dataclass

@@ -317,15 +317,15 @@ class CachedPhotos:
         self.target, self.tensor_at_build = batch.target, tensor.detach().clone()
         self.frame, self.given = batch.frame, batch.exposure
 
-    def loss(self, g: torch.Generator) -> torch.Tensor:
-        """L_photo of `config.pixels` pixels of the current cache."""
+    def loss(self, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """L_photo of `config.pixels` pixels of the current cache: (objective, mse) as `photometric_loss`."""
         assert self.cache is not None
         cfg = self.config
         pix = torch.randint(0, cfg.cache_pixels, (cfg.pixels,), generator=g, device=self.problem.device)
         rays = (pix.unsqueeze(-1) * cfg.spp + torch.arange(cfg.spp, device=pix.device)).reshape(-1)
         radiance = self.cache.radiance(self.problem.params.field(), rays)
         scale = self.problem.photo_scale(self.frame[pix], self.given[pix])
-        return photometric_loss(radiance, self.target[pix], cfg.spp, self.problem.tonemap, scale)
+        return photometric_loss(radiance, self.target[pix], cfg.spp, self.problem.tonemap, scale, cfg.photo_loss)
 
 
 def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None = None,
@@ -363,12 +363,13 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         if cached is not None:
             if step % config.cache_every == 0:
                 cached.build(step, params.tensor)
-            photo = cached.loss(g)
+            photo, mse_t = cached.loss(g)
         else:
             batch = problem.photos.batch(config.pixels, config.spp, g)
             radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
             scale = problem.photo_scale(batch.frame, batch.exposure)
-            photo = photometric_loss(radiance, batch.target, config.spp, problem.tonemap, scale)
+            photo, mse_t = photometric_loss(radiance, batch.target, config.spp, problem.tonemap, scale,
+                                            config.photo_loss)  # fmt: skip
         loss = photo
         reg = torch.zeros((), device=problem.device)
         if anchor is not None:
@@ -385,7 +386,7 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         step += 1
         if average is not None:
             average.update(step, params.tensor)
-        mse = float(photo.detach())
+        mse = float(mse_t)
         row = {"step": float(step), "loss": float(loss.detach()), "photo": mse, "reg": float(reg.detach()),
                "psnr": 10 * math.log10(1 / max(mse, 1e-12)), "lr": lr}  # fmt: skip
         if exposure is not None:  # the largest fitted exposure correction so far, in stops (|log2 s_f|)
