@@ -70,7 +70,7 @@ def test_tto_lowers_photometric_loss_and_moves_gbuffers_toward_truth(example, tr
     assert scores["psnr_latents"] == pytest.approx(10 * math.log10(1 / lat1), abs=1e-3)
 
 
-@pytest.mark.parametrize("kind", ["l2", "decorrelated"])
+@pytest.mark.parametrize("kind", ["l2", "decorrelated", "linear_decorrelated"])
 def test_decorrelated_photo_loss_has_no_variance_bias(kind):
     """A pixel whose samples are theta * X, X in {0, 2} with equal odds (mean 1, variance 1), against a photo of
     0.2 (theta* = 0.2), 8 spp, linear tonemap. The squared error of the 8-sample mean has expectation

@@ -68,6 +68,8 @@ ROW_NAMES = {
     "pbr_start_anchor_01_avg": "neural from the PBR solution, anchored (lambda 0.1), mean iterate of each phase's tail",
     "pbr_decorrelated": "PBR baseline, decorrelated photometric loss",
     "pbr_start_anchor_01_decorrelated": "neural from the PBR solution, anchored (0.1), decorrelated photometric loss",
+    "pbr_lin_decorrelated": "PBR baseline, decorrelated photometric loss in linear radiance",
+    "pbr_start_anchor_01_lin_decorrelated": "neural from the PBR solution, anchored (0.1), decorrelated in linear",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)

@@ -63,6 +63,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
                          "photo_loss": "decorrelated"},
     "pbr_start_anchor_01_decorrelated": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                          "photo_loss": "decorrelated"},
+    "pbr_lin_decorrelated": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr",
+                             "photo_loss": "linear_decorrelated"},
+    "pbr_start_anchor_01_lin_decorrelated": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
+                                             "photo_loss": "linear_decorrelated"},
     "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
@@ -78,7 +82,8 @@ TABLES: dict[str, list[str]] = {
     "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
                    "pbr_start_bsdf_lr05", "pbr_start_bsdf_lr02"],
     "averaging": ["pbr", "pbr_avg", "pbr_start_anchor_01", "pbr_start_anchor_01_avg"],
-    "decorrelated": ["pbr", "pbr_decorrelated", "pbr_start_anchor_01", "pbr_start_anchor_01_decorrelated"],
+    "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",
+                     "pbr_start_anchor_01_decorrelated", "pbr_start_anchor_01_lin_decorrelated"],
 }
 
 

@@ -143,8 +143,8 @@ class TTOConfig:
                              f"field='triplane', got {self.material!r} and {self.field!r}")
         if self.basis and self.basis not in installed_bases():
             raise ValueError(f"TTO basis={self.basis!r} is not installed (installed: {', '.join(installed_bases())})")
-        if self.photo_loss == "decorrelated" and self.spp < 2:
-            raise ValueError(f"TTO photo_loss='decorrelated' splits each pixel's samples in two: it needs spp >= 2, "
+        if self.photo_loss != "l2" and self.spp < 2:
+            raise ValueError(f"TTO photo_loss={self.photo_loss!r} splits each pixel's samples in two: it needs spp >= 2, "
                              f"got {self.spp}")
         if self.reg == "start" and self.init != "pbr":
             raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")

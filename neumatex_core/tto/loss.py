@@ -26,7 +26,19 @@ ORACLE_EPS = 1e-4  # floor of the oracle's squared error (a perfect LMRM channel
 LOG_VAR_MIN = -12.0  # floor of the predicted log-variances: weights at most e^12
 
 
-PhotoLossKind = Literal["l2", "decorrelated"]
+PhotoLossKind = Literal["l2", "decorrelated", "linear_decorrelated"]
+DARK_FLOOR = 0.01  # linear radiance (x exposure) below which "linear_decorrelated" weighs a pixel as if at it
+CLIPPED = 0.999  # display value from which a photo's pixel counts as clipped (its radiance is only a lower bound)
+
+
+def tonemap_slope(tonemap: Tonemap, x: torch.Tensor) -> torch.Tensor:
+    """dT/dx [..., 3] at linear radiance x [..., 3] (detached), with x floored at DARK_FLOOR / exposure and held
+    just below the clip (the sRGB slope is unbounded at 0, and 0 above the clip)."""
+    lo, hi = DARK_FLOOR / tonemap.exposure, CLIPPED / tonemap.exposure
+    with torch.enable_grad():
+        at = x.detach().clamp(lo, hi).requires_grad_(True)
+        (slope,) = torch.autograd.grad(tonemap.apply(at).sum(), at)
+    return slope
 
 
 def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, tonemap: Tonemap,
@@ -37,7 +49,12 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
     T's (None: 1). Returns (objective, mse): the objective TTO descends and, detached, the mean of
     (T(scale * mean over the spp samples) - target)^2, what TTO logs. kind "l2": the objective is that mse;
     "decorrelated" (spp >= 2): the mean of (T(scale * a) - target)(T(scale * b) - target) with a, b the means of
-    the first spp // 2 and the other samples, an unbiased estimate of the squared error of the expected render."""
+    the first spp // 2 and the other samples, an unbiased estimate of the squared error of E[T(scale * a)] (T's
+    concavity still biases that at spp // 2 samples); "linear_decorrelated" (spp >= 2): the errors in linear radiance
+    against the photo's linear value x = T^-1(target), the product averaged over every pair of distinct samples
+    (e_i e_j, i != j: the squared error of the pixel's mean minus its sample variance / spp), weighted by T'(x)^2 (so
+    it is the tonemapped squared error to first order), with no bias from T's curvature either; in a clipped photo
+    pixel (target >= CLIPPED) a sample only counts below the clip."""
     samples = radiance.reshape(-1, spp, 3)
     s = 1.0 if scale is None else scale.reshape(-1, 1)
     error = tonemap.apply(samples.mean(1) * s) - target
@@ -47,9 +64,18 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
     if spp < 2:
         raise ValueError(f"the decorrelated photometric loss needs spp >= 2, got {spp}")
     half = spp // 2
-    error_a = tonemap.apply(samples[:, :half].mean(1) * s) - target
-    error_b = tonemap.apply(samples[:, half:].mean(1) * s) - target
-    return (error_a * error_b).mean(), mse.detach()
+    if kind == "decorrelated":
+        a, b = samples[:, :half].mean(1) * s, samples[:, half:].mean(1) * s
+        return ((tonemap.apply(a) - target) * (tonemap.apply(b) - target)).mean(), mse.detach()
+    x = tonemap.display_to_linear(target)
+    clipped = (target >= CLIPPED).unsqueeze(1)
+    lin = samples * (s if scale is None else s.unsqueeze(1))
+    errors = torch.where(clipped, torch.minimum(lin, x.unsqueeze(1)), lin) - x.unsqueeze(1)  # [n, spp, 3]
+    # the mean over every ordered pair i != j of samples of e_i e_j (the U-statistic of the two-halves product:
+    # the same expectation, less variance), from the sum and the sum of squares
+    total = errors.sum(1)
+    pairs = (total * total - (errors * errors).sum(1)) / (spp * (spp - 1))
+    return (tonemap_slope(tonemap, x) ** 2 * pairs).mean(), mse.detach()
 
 
 @dataclass
