@@ -68,6 +68,8 @@ ROW_NAMES = {
     "pbr_start_anchor_01_avg": "neural from the PBR solution, anchored (lambda 0.1), mean iterate of each phase's tail",
     "pbr_decorrelated": "PBR baseline, decorrelated photometric loss",
     "pbr_start_anchor_01_decorrelated": "neural from the PBR solution, anchored (0.1), decorrelated photometric loss",
+    "pbr_spp32": "PBR baseline, 256 pixels x 32 spp per step",
+    "pbr_start_anchor_01_spp32": "neural from the PBR solution, anchored (0.1), 256 pixels x 32 spp per step",
     "pbr_lin_decorrelated": "PBR baseline, decorrelated photometric loss in linear radiance",
     "pbr_start_anchor_01_lin_decorrelated": "neural from the PBR solution, anchored (0.1), decorrelated in linear",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
@@ -92,6 +94,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                    "tto_minutes"),
     "averaging": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_relight", "psnr_relight_clean",
                   "tto_minutes"),
+    "spp32": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+              "psnr_relight_clean", "tto_minutes"),
     "decorrelated": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
                      "psnr_relight_clean", "tto_minutes"),
 }
@@ -105,6 +109,7 @@ TABLE_TITLES = {
     "start_anchor": "Anchored to the PBR start (issue 14): relighting",
     "bsdf_start": "The PBR start refined in BSDF space, and the neural phase's step size (issue 14)",
     "averaging": "Iterate averaging: the mean of the last half of the steps as the result (issue 14)",
+    "spp32": "Samples per pixel in TTO: 256 pixels x 32 spp (the photos' own count) against 1024 x 8 (issue 14)",
     "decorrelated": "The photometric loss without the render's variance: two independent half-estimates (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")

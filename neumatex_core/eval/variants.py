@@ -16,7 +16,8 @@ default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`,
 and 1/10 of the preset's (`neural_lr_scale`). Averaging (issue 14): PBR and that default with the result the mean
 iterate of the last half of each phase (`average_tail`). Decorrelated (issue 14): PBR and that default with the
 photometric loss of two independent half-estimates per pixel (`photo_loss`, tto/loss.py), so the render's Monte
-Carlo variance no longer pulls the material towards what renders with less noise.
+Carlo variance no longer pulls the material towards what renders with less noise. Spp32 (issue 14): the same rays
+per step as 256 pixels x 32 spp (the benchmark photos' own sample count) instead of 1024 x 8.
 """
 
 from __future__ import annotations
@@ -67,6 +68,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
                              "photo_loss": "linear_decorrelated"},
     "pbr_start_anchor_01_lin_decorrelated": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                              "photo_loss": "linear_decorrelated"},
+    "pbr_spp32": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "pixels": 256, "spp": 32},
+    "pbr_start_anchor_01_spp32": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pixels": 256, "spp": 32},
     "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
@@ -82,6 +85,7 @@ TABLES: dict[str, list[str]] = {
     "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
                    "pbr_start_bsdf_lr05", "pbr_start_bsdf_lr02"],
     "averaging": ["pbr", "pbr_avg", "pbr_start_anchor_01", "pbr_start_anchor_01_avg"],
+    "spp32": ["pbr", "pbr_spp32", "pbr_start_anchor_01", "pbr_start_anchor_01_spp32"],
     "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",
                      "pbr_start_anchor_01_decorrelated", "pbr_start_anchor_01_lin_decorrelated"],
 }

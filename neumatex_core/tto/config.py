@@ -15,8 +15,10 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
 - estimator: "path" (default: every step path traces its pixels) or "cached" (the light transport of `cache_pixels`
   photo pixels is cached every `cache_every` steps, `render/transport_cache.py`, and each step re-evaluates only
   the material; cheaper steps, but it measured worse at equal time so far: docs/design-notes.md, item 22);
-- photo_loss: "l2" (the paper's: the squared error of each pixel's spp-sample mean) or "decorrelated" (the product
-  of two independent half-estimates' errors, so the render's Monte Carlo variance adds no gradient; tto/loss.py);
+- photo_loss: "l2" (the paper's: the squared error of each pixel's spp-sample mean), "decorrelated" (the product of
+  two independent half-estimates' errors) or "linear_decorrelated" (products of distinct samples' errors in linear
+  radiance), so the render's Monte Carlo variance adds no gradient (tto/loss.py; measured worse on the benchmark:
+  docs/design-notes.md, item 28);
 - basis: "" (the default neural basis) or the id of another installed basis (materials/data/bases/; with init
   "pbr" or "random" and reg "none", since the LMRM's latents are the default basis's: docs/design-notes.md, item 25).
 """
@@ -144,7 +146,7 @@ class TTOConfig:
         if self.basis and self.basis not in installed_bases():
             raise ValueError(f"TTO basis={self.basis!r} is not installed (installed: {', '.join(installed_bases())})")
         if self.photo_loss != "l2" and self.spp < 2:
-            raise ValueError(f"TTO photo_loss={self.photo_loss!r} splits each pixel's samples in two: it needs spp >= 2, "
+            raise ValueError(f"TTO photo_loss={self.photo_loss!r} pairs each pixel's samples: it needs spp >= 2, "
                              f"got {self.spp}")
         if self.reg == "start" and self.init != "pbr":
             raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")
