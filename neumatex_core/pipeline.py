@@ -39,6 +39,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from neumatex_core.atomic import write_json_atomic
 from neumatex_core.capture import Capture, CaptureError, load_capture, validate_capture
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
@@ -204,14 +205,8 @@ def read_done(work: Path, stage: str) -> dict[str, Any]:
         raise PipelineError(f"{path}: unreadable stage record ({exc}); delete it to re-run the stage") from None
 
 
-def _write_json_atomic(path: Path, data: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-
-
 def _mark_done(work: Path, stage: str, metrics: dict[str, Any]) -> None:
-    _write_json_atomic(stage_dir(work, stage) / DONE, {"stage": stage, "metrics": metrics})
+    write_json_atomic(stage_dir(work, stage) / DONE, {"stage": stage, "metrics": metrics})
 
 
 def _require(work: Path, *stages: str) -> None:
@@ -339,7 +334,7 @@ def _stage_prepare_views(capture: Path, work: Path, config: ExtractConfig,
     save_file({"display": display.contiguous(), "mask": mask.to(torch.uint8).contiguous(),
                "observed": observed.to(torch.uint8).contiguous()}, str(out / "views.safetensors"))  # fmt: skip
     write_image(out / "views.png", contact_sheet([d.numpy() for d in display], columns=6))
-    _write_json_atomic(out / "views.json", {"centre": [float(c) for c in centre], "scale": float(scale),
+    write_json_atomic(out / "views.json", {"centre": [float(c) for c in centre], "scale": float(scale),
                                             "source": source, "resolution": resolution})  # fmt: skip
     return {"resolution": resolution, "observed_fraction": float(observed.sum() / mask.sum().clamp_min(1)),
             "source": source}
@@ -404,7 +399,7 @@ def _stage_lmrm(capture: Path, work: Path, config: ExtractConfig, progress: Prog
             tensors[f"decoder.{kind}.{k}"] = v.detach().cpu().float().contiguous()
         record["decoders"][kind] = {"id": module_id(dec), "architecture": dec.architecture()}
     save_file(tensors, str(out / "prediction.safetensors"))
-    _write_json_atomic(out / "prediction.json", record)
+    write_json_atomic(out / "prediction.json", record)
     _emit(progress, "lmrm", 1.0, f"prediction: {source}")
     return {"trained": trained, "source": source, "predict_s": seconds_predict}
 
@@ -483,10 +478,10 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
         for k, v in result.params.decoder.state_dict().items():  # type: ignore[union-attr]
             tensors[f"decoder.{k}"] = v.detach().cpu().float().contiguous()
     save_file(tensors, str(out / "result.safetensors"))
-    _write_json_atomic(out / "history.json", result.history)
+    write_json_atomic(out / "history.json", result.history)
     stops = {}
     if result.exposure is not None:  # TTOConfig.photo_exposure: the fitted multipliers, read by the export stage
-        _write_json_atomic(out / EXPOSURE_FILE, result.exposure)
+        write_json_atomic(out / EXPOSURE_FILE, result.exposure)
         stops = {"exposure_stops_max": max(abs(math.log2(e)) for e in result.exposure)}
     tail = result.history[-max(1, len(result.history) // 10):]
     return {**stops, "steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),

@@ -33,6 +33,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from neumatex_core import pipeline
+from neumatex_core.atomic import is_temporary
 from services.redact import redact_text
 from services.storage import Storage, get_storage
 
@@ -100,7 +101,7 @@ class PartialOutputs:
         n = 0
         for p in sorted(self.folder.rglob("*")):
             rel = p.relative_to(self.folder).as_posix()
-            if not p.is_file() or rel == pipeline.DONE or p.name.endswith(".tmp"):
+            if not p.is_file() or rel == pipeline.DONE or is_temporary(p.name):
                 continue
             st = p.stat()
             if self._stored.get(rel) != (st.st_mtime_ns, st.st_size):

@@ -113,3 +113,24 @@ def test_random_pose_is_deterministic_resumes_and_refuses_other_settings(obj, tm
     shutil.copytree(obj, copy, ignore=shutil.ignore_patterns("random_pose"))
     write_random_pose(copy, RandomPoseConfig(photos=8, resolution=64, spp=1, lens=1.0))
     assert (copy / "random_pose" / "transforms.json").read_bytes() == before
+
+
+def test_random_pose_resumes_an_interrupted_object_keeping_its_finished_photos(obj, tmp_path):
+    """A run stopped after five of eight photos (no transforms.json yet) goes on from the sixth: the five are kept
+    as they are (not rendered again) and the capture is byte for byte the one made in one go."""
+    import shutil
+
+    copy = tmp_path / obj.name
+    shutil.copytree(obj, copy)
+    capture = copy / "random_pose"
+    made = {p.relative_to(capture).as_posix(): p.read_bytes() for p in capture.rglob("*") if p.is_file()}
+    (capture / "transforms.json").unlink()
+    for k in (5, 6, 7):
+        (capture / f"images/{k:03d}.jpg").unlink()
+    (capture / "masks/007.png").unlink()
+    kept = {k: (capture / f"images/{k:03d}.jpg").stat().st_mtime_ns for k in range(5)}
+    assert write_random_pose(copy, CFG) is True
+    assert {k: (capture / f"images/{k:03d}.jpg").stat().st_mtime_ns for k in range(5)} == kept
+    again = {p.relative_to(capture).as_posix(): p.read_bytes() for p in capture.rglob("*") if p.is_file()}
+    assert again == made
+

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -41,6 +40,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
+from neumatex_core.atomic import replaced_atomically, write_json_atomic
 from neumatex_core.capture import load_capture
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.camera import PRESET_ORBIT_VIEWS
@@ -144,18 +144,6 @@ def harness_envmap(cap: Any) -> EnvironmentMap:
     return EnvironmentMap(cap.load_envmap(), cap.envmap_to_world, 1.0)
 
 
-def _write_exr_atomic(path: Path, pixels: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")  # the suffix picks the EXR writer
-    write_image(tmp, pixels)
-    os.replace(tmp, path)
-
-
-def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-
-
 def reference_settings(object_dir: Path, spp_half: int, max_bounces: int) -> dict[str, Any]:
     """What decides the reference pixels (compared on resume): no times, paths or commit."""
     meta = _meta(object_dir)
@@ -205,7 +193,7 @@ def render_references(object_dir: str | Path, spp_half: int = 128, max_bounces: 
     folder.mkdir(parents=True, exist_ok=True)
     for stale in folder.rglob(".*.tmp*"):  # a stopped run's half-written file
         stale.unlink(missing_ok=True)
-    _write_json_atomic(folder / "meta.json", record)
+    write_json_atomic(folder / "meta.json", record)
     todo = [k for k in seeds if not (folder / f"{k}.exr").is_file()]
     total = len(seeds)
     if progress is not None:
@@ -228,13 +216,14 @@ def render_references(object_dir: str | Path, spp_half: int = 128, max_bounces: 
                 image = tracer.render(scene, cap.frames[view].camera, seed=seeds[key]).cpu().numpy()
             path = folder / f"{key}.exr"
             path.parent.mkdir(parents=True, exist_ok=True)
-            _write_exr_atomic(path, image.astype(np.float32))
+            with replaced_atomically(path) as tmp:
+                write_image(tmp, image.astype(np.float32))
             done += 1
             if progress is not None:
                 progress(done, total)
     record.update(complete=all((folder / f"{k}.exr").is_file() for k in seeds),
                   seconds=round(float(record["seconds"]) + time.perf_counter() - start, 3))  # fmt: skip
-    _write_json_atomic(folder / "meta.json", record)
+    write_json_atomic(folder / "meta.json", record)
     return record
 
 

@@ -30,6 +30,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from neumatex_core.atomic import write_json_atomic
 from neumatex_core.config import command_line, option
 from neumatex_core.eval.harness import TRUTH
 from neumatex_core.eval.plots import DifferenceRow, difference_chart
@@ -203,9 +204,7 @@ def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], ru
                                    render_views=tuple(range(render_views)), relight_views=tuple(relight_views),
                                    figure_dir=figure_dir, clean_spp_half=clean_spp_half)  # fmt: skip
         target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"object": obj, "variant": variant, **metrics}, indent=1))
-        tmp.replace(target)  # atomic: a stopped run never leaves half a result
+        write_json_atomic(target, {"object": obj, "variant": variant, **metrics})  # a stopped run leaves no half
         done.append((variant, metrics))
     return done
 

@@ -32,6 +32,7 @@ from typing import Any
 
 import torch
 
+from neumatex_core.atomic import write_json_atomic
 from neumatex_core.synth.config import SynthConfig
 from neumatex_core.synth.profile import StageTimes
 from neumatex_core.synth.spec import (
@@ -204,9 +205,7 @@ def generate(cfg: SynthConfig, progress: Callable[[int, int, dict[str, Any] | No
                 done(fut.result())
     data = manifest(cfg, settings)
     path = out / MANIFEST
-    tmp = out / f".{MANIFEST}.{os.getpid()}"
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    write_json_atomic(path, data)
     result.manifest, result.complete = path, bool(data["complete"])
     result.seconds = time.perf_counter() - start
     return result

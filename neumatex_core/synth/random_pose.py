@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from neumatex_core.atomic import replaced_atomically, write_json_atomic
 from neumatex_core.capture.distortion import Distortion, opencv_matrix
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.config import option
@@ -149,14 +150,17 @@ def write_random_pose(object_dir: str | Path, cfg: RandomPoseConfig) -> bool:
     object_dir = Path(object_dir)
     out = object_dir / "random_pose"
     want = settings(object_dir, cfg)
-    if (out / "transforms.json").is_file() and (out / "settings.json").is_file():
-        have = json.loads((out / "settings.json").read_text())
+    have = json.loads((out / "settings.json").read_text()) if (out / "settings.json").is_file() else None
+    if (out / "transforms.json").is_file() and have is not None:
         if have == want:
             return False
         raise ValueError(f"{out} was made with other settings ({have}); delete it to remake it")
-    if out.exists():
-        shutil.rmtree(out)  # an interrupted run: start the object again
-    out.mkdir(parents=True)
+    if out.exists() and have != want:
+        shutil.rmtree(out)  # an interrupted run with other settings: start the object again
+    # else an interrupted run with these settings: its finished photos are kept (each photo's pixels depend only on
+    # the object's seeds and its index, so the capture is the same as one made in one go)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "settings.json").write_text(json.dumps(want, indent=1, sort_keys=True) + "\n")
     meta = json.loads((object_dir / "meta.json").read_text())
     spec = object_spec_from_json(meta["spec"])
     field = truth_field(object_dir)
@@ -171,12 +175,17 @@ def write_random_pose(object_dir: str | Path, cfg: RandomPoseConfig) -> bool:
     exposures = [float(2.0 ** rng.uniform(-cfg.exposure_stops, cfg.exposure_stops)) for _ in cams]
     k1, k2 = rng.uniform(-1.0, 1.0, 2) * np.array([cfg.lens, cfg.lens / 3])
     lens = Distortion(k1=round(float(k1), 6), k2=round(float(k2), 6))
-    _link(object_dir / "mesh.obj", out / "mesh.obj")
-    _link(object_dir / top["envmap"], out / top["envmap"])
-    (out / "images").mkdir()
-    (out / "masks").mkdir()
+    for name in ("mesh.obj", top["envmap"]):
+        if not (out / name).is_file():
+            _link(object_dir / name, out / name)
+    (out / "images").mkdir(exist_ok=True)
+    (out / "masks").mkdir(exist_ok=True)
     frames = []
     for k, (cam, exposure) in enumerate(zip(cams, exposures, strict=True)):
+        frames.append({"file_path": f"images/{k:03d}.jpg", "mask_path": f"masks/{k:03d}.png", "exposure": exposure,
+                       "transform_matrix": cam.c2w.tolist()})  # fmt: skip
+        if (out / frames[-1]["file_path"]).is_file():  # made before an interruption (written last, atomically)
+            continue
         seed = int(np.random.SeedSequence([spec.render_seed, RENDER_SALT, k]).generate_state(1)[0])
 
         def render(pinhole: Camera, seed: int = seed) -> tuple[np.ndarray, np.ndarray]:
@@ -185,19 +194,16 @@ def write_random_pose(object_dir: str | Path, cfg: RandomPoseConfig) -> bool:
             return image, render_gbuffer(mesh, pinhole, scene.raycaster).mask.numpy()
 
         linear, mask = distorted_photo(render, cam, lens)
-        write_jpeg(out / f"images/{k:03d}.jpg", Tonemap(exposure=exposure).apply_numpy(linear))
-        write_image(out / f"masks/{k:03d}.png", mask.astype(np.float32)[:, :, None])
-        frames.append({"file_path": f"images/{k:03d}.jpg", "mask_path": f"masks/{k:03d}.png", "exposure": exposure,
-                       "transform_matrix": cam.c2w.tolist()})  # fmt: skip
+        with replaced_atomically(out / frames[-1]["mask_path"]) as tmp:
+            write_image(tmp, mask.astype(np.float32)[:, :, None])
+        with replaced_atomically(out / frames[-1]["file_path"]) as tmp:  # the photo last: its file marks it done
+            write_jpeg(tmp, Tonemap(exposure=exposure).apply_numpy(linear))
     cam0 = cams[0]
     transforms = {"camera_model": "OPENCV", "fl_x": cam0.fl_x, "fl_y": cam0.fl_y, "cx": cam0.cx, "cy": cam0.cy,
                   "w": cam0.width, "h": cam0.height, "k1": lens.k1, "k2": lens.k2, "p1": 0.0, "p2": 0.0,
                   "mesh": "mesh.obj", "envmap": top["envmap"], "envmap_to_world": top["envmap_to_world"],
                   "envmap_scale": top["envmap_scale"], "tonemap": top["tonemap"], "frames": frames}  # fmt: skip
-    (out / "settings.json").write_text(json.dumps(want, indent=1, sort_keys=True) + "\n")
-    tmp = out / ".transforms.json.tmp"
-    tmp.write_text(json.dumps(transforms, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, out / "transforms.json")
+    write_json_atomic(out / "transforms.json", transforms)
     return True
 
 

@@ -69,7 +69,7 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
         return ((tonemap.apply(a) - target) * (tonemap.apply(b) - target)).mean(), mse.detach()
     x = tonemap.display_to_linear(target)
     clipped = (target >= CLIPPED).unsqueeze(1)
-    lin = samples * (s if scale is None else s.unsqueeze(1))
+    lin = samples if scale is None else samples * scale.reshape(-1, 1, 1)
     errors = torch.where(clipped, torch.minimum(lin, x.unsqueeze(1)), lin) - x.unsqueeze(1)  # [n, spp, 3]
     # the mean over every ordered pair i != j of samples of e_i e_j (the U-statistic of the two-halves product:
     # the same expectation, less variance), from the sum and the sum of squares

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import copy
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ import torch
 
 from neumatex_core.assets.bake import bake, rasterize_uv
 from neumatex_core.assets.uv_unwrap import unwrap
+from neumatex_core.atomic import replaced_atomically
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.fields.uv_textures import MATERIAL_CHANNELS, PBR_CHANNELS
@@ -257,14 +257,13 @@ def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametri
                      opt: torch.optim.Optimizer, history: list[dict[str, float]],
                      cache_tensor: torch.Tensor | None, exposure: ExposureFit | None = None,
                      average: torch.Tensor | None = None) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
-                "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history,
-                "decoder": None if params.decoder is None else params.decoder.state_dict(),
-                "cache_tensor": None if cache_tensor is None else cache_tensor.cpu(),
-                "exposure": None if exposure is None else exposure.log_scale.detach().cpu(),
-                "average": None if average is None else average.cpu()}, tmp)  # fmt: skip
-    os.replace(tmp, path)
+    with replaced_atomically(path) as tmp:
+        torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
+                    "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history,
+                    "decoder": None if params.decoder is None else params.decoder.state_dict(),
+                    "cache_tensor": None if cache_tensor is None else cache_tensor.cpu(),
+                    "exposure": None if exposure is None else exposure.log_scale.detach().cpu(),
+                    "average": None if average is None else average.cpu()}, tmp)  # fmt: skip
 
 
 def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation, opt: torch.optim.Optimizer,
