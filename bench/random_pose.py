@@ -3,6 +3,7 @@
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/random_pose.py [--data data/benchmark-test]
         [--objects first:2] [--preset cpu] [--view-resolution R] [--threads 2]
+    .venv/bin/python bench/random_pose.py --summarise [--view-resolution 64]   # docs/benchmark.md's table rows
 
 For each object: `run_stage("validate")` then `run_stage("prepare_views")` (timed) on <object>/random_pose/ (100 JPEG
 photos with per-photo exposure and lens distortion), then the synthesised views (display, the stage's sRGB at the
@@ -99,7 +100,11 @@ def main() -> int:
     ap.add_argument("--preset", default="cpu", choices=["tiny", "cpu", "gpu"])
     ap.add_argument("--view-resolution", type=int, default=0, help="0: the preset's")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--summarise", action="store_true",
+                    help="print the table rows over every object in bench/results/random_pose.jsonl and stop")
     args = ap.parse_args()
+    if args.summarise:
+        return summarise(Path(__file__).resolve().parent / "results" / "random_pose.jsonl", args.view_resolution or 64)
     torch.set_num_threads(args.threads)
     config = ExtractConfig.preset(args.preset, device="cpu")
     if args.view_resolution:
@@ -126,6 +131,27 @@ def main() -> int:
     print(f"mean over {len(rows)} objects: PSNR {mean['psnr_mask']:.2f} dB over the mask "
           f"({mean['psnr_observed']:.2f} dB where observed, {mean['observed_fraction']:.1%} observed); prepare_views "
           f"{mean['prepare_views_minutes']:.3f} min per capture -> {path}")
+    return 0
+
+
+def summarise(results: Path, view_resolution: int) -> int:
+    """docs/benchmark.md's rows: the latest measurement per object at `view_resolution`, then their mean."""
+    latest: dict[str, dict[str, Any]] = {}
+    for line in results.read_text().splitlines():
+        for row in json.loads(line).get("objects", []):
+            if row.get("view_resolution") == view_resolution:
+                latest[row["object"]] = row
+    if not latest:
+        print(f"{results}: no objects at {view_resolution} px")
+        return 1
+    rows = [latest[k] for k in sorted(latest)]
+    for r in rows:
+        print(f"| {r['object']} | {view_resolution} px | {r['psnr_mask']:.2f} dB | "
+              f"{r['prepare_views_minutes']:.3f} min | |")
+    print(f"| mean of {len(rows)} | {view_resolution} px | {np.mean([r['psnr_mask'] for r in rows]):.2f} dB | "
+          f"{np.mean([r['prepare_views_minutes'] for r in rows]):.3f} min | |")
+    worst = min(rows, key=lambda r: r["psnr_mask"])
+    print(f"worst: {worst['object']} {worst['psnr_mask']:.2f} dB")
     return 0
 
 

@@ -100,6 +100,14 @@ def summarise(results: Path, variant: str) -> int:
     names = {"psnr_pathtrace_clean": "PathTrace, clean", "psnr_relight_clean": "Relight, clean",
              "psnr_basecolor": "BaseColor", "psnr_latents": "Latents"}  # fmt: skip
     print(f"variant {variant}, objects {', '.join(sorted(latest))} (n={len(latest)})")
+    print("| PSNR, dB, random-pose / preset views | PathTrace clean | Relight clean | BaseColor | Latents |")
+    print("|---|---|---|---|---|")
+    for name in sorted(latest):
+        r = latest[name]
+        cells = [f"{r[f'random_pose/{variant}'].get(m, np.nan):.2f} / {r[f'preset/{variant}'].get(m, np.nan):.2f}"
+                 for m in METRICS]  # fmt: skip
+        print(f"| {name} | {' | '.join(cells)} |")
+    print()
     print("| PSNR, dB | random-pose photos | preset views | random-pose - preset (paired, +- s.e.) | worst object |")
     print("|---|---|---|---|---|")
     for m in METRICS:
