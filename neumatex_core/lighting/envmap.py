@@ -143,6 +143,7 @@ class EnvironmentMap:
         local = directions @ self.to_world  # inverse rotation = transpose
         u = torch.atan2(local[:, 0], -local[:, 2]) * (0.5 / math.pi)
         u = u - torch.floor(u)
+        u = torch.where(u >= 1.0, u - 1.0, u)  # a u of -1e-9 (x = -0.0 on the seam) rounds to 1.0 in float32
         v = torch.acos(local[:, 1].clamp(-1.0, 1.0)) / math.pi
         return torch.stack([u, v], dim=-1)
 
