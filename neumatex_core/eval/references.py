@@ -40,7 +40,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from neumatex_core.atomic import replaced_atomically, write_json_atomic
+from neumatex_core.atomic import is_temporary, replaced_atomically, write_json_atomic
 from neumatex_core.capture import load_capture
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.camera import PRESET_ORBIT_VIEWS
@@ -191,7 +191,7 @@ def render_references(object_dir: str | Path, spp_half: int = 128, max_bounces: 
              for hi, h in enumerate(HALVES)}  # fmt: skip
     record = {"settings": settings, "seeds": seeds, "complete": False, "seconds": 0.0, **(stored or {})}
     folder.mkdir(parents=True, exist_ok=True)
-    for stale in folder.rglob(".*.tmp*"):  # a stopped run's half-written file
+    for stale in [p for p in folder.rglob(".*") if is_temporary(p.name)]:  # a stopped run's half-written file
         stale.unlink(missing_ok=True)
     write_json_atomic(folder / "meta.json", record)
     todo = [k for k in seeds if not (folder / f"{k}.exr").is_file()]

@@ -111,7 +111,7 @@ TABLE_TITLES = {
     "bsdf_start": "The PBR start refined in BSDF space, and the neural phase's step size (issue 14)",
     "averaging": "Iterate averaging: the mean of the last half of the steps as the result (issue 14)",
     "spp32": "Samples per pixel in TTO: 256 pixels x 32 spp (the photos' own count) against 1024 x 8 (issue 14)",
-    "decorrelated": "The photometric loss without the render's variance: two independent half-estimates (issue 14)",
+    "decorrelated": "The photometric loss without the render's variance: independent sample errors (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")
 

@@ -160,7 +160,7 @@ def write_random_pose(object_dir: str | Path, cfg: RandomPoseConfig) -> bool:
     # else an interrupted run with these settings: its finished photos are kept (each photo's pixels depend only on
     # the object's seeds and its index, so the capture is the same as one made in one go)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "settings.json").write_text(json.dumps(want, indent=1, sort_keys=True) + "\n")
+    write_json_atomic(out / "settings.json", want)
     meta = json.loads((object_dir / "meta.json").read_text())
     spec = object_spec_from_json(meta["spec"])
     field = truth_field(object_dir)

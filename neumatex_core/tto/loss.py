@@ -6,7 +6,8 @@
   gradient pulls the material towards what renders with less noise (dimmer, blurrier highlights). The
   "decorrelated" form (Azinovic et al. 2019, "Inverse Path Tracing") multiplies the errors of two independent
   halves of each pixel's samples, (T(s a^) - photo)(T(s b^) - photo), whose expectation is the squared error of
-  the expected render alone (docs/design-notes.md, item 28);
+  the expected render alone; "linear_decorrelated" takes such products in linear radiance over every pair of
+  samples. Both measured worse than the L2 on the benchmark (docs/design-notes.md, item 28);
 - L_reg: mean over surface points p and channels c of w_c(p) (G_c(p) - A_c(p))^2, where A is the anchor (the LMRM's
   G-buffers at p) and w the per-channel weights: exp(-log_var) of the LMRM's uncertainty ("uncertainty"),
   1 / max(e^2, eps) with e the LMRM's actual error against ground truth ("oracle"), or 0 ("none").
@@ -57,16 +58,16 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
     pixel (target >= CLIPPED) a sample only counts below the clip."""
     samples = radiance.reshape(-1, spp, 3)
     s = 1.0 if scale is None else scale.reshape(-1, 1)
-    error = tonemap.apply(samples.mean(1) * s) - target
-    mse = (error * error).mean()
+    with torch.set_grad_enabled(kind == "l2" and torch.is_grad_enabled()):  # the other kinds only log it
+        error = tonemap.apply(samples.mean(1) * s) - target
+        mse = (error * error).mean()
     if kind == "l2":
         return mse, mse.detach()
     if spp < 2:
         raise ValueError(f"the decorrelated photometric loss needs spp >= 2, got {spp}")
-    half = spp // 2
     if kind == "decorrelated":
-        a, b = samples[:, :half].mean(1) * s, samples[:, half:].mean(1) * s
-        return ((tonemap.apply(a) - target) * (tonemap.apply(b) - target)).mean(), mse.detach()
+        a, b = samples[:, : spp // 2].mean(1) * s, samples[:, spp // 2 :].mean(1) * s
+        return ((tonemap.apply(a) - target) * (tonemap.apply(b) - target)).mean(), mse
     x = tonemap.display_to_linear(target)
     clipped = (target >= CLIPPED).unsqueeze(1)
     lin = samples if scale is None else samples * scale.reshape(-1, 1, 1)
@@ -75,7 +76,7 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
     # the same expectation, less variance), from the sum and the sum of squares
     total = errors.sum(1)
     pairs = (total * total - (errors * errors).sum(1)) / (spp * (spp - 1))
-    return (tonemap_slope(tonemap, x) ** 2 * pairs).mean(), mse.detach()
+    return (tonemap_slope(tonemap, x) ** 2 * pairs).mean(), mse
 
 
 @dataclass
