@@ -4,6 +4,7 @@
     neumatex cycles-capture --mesh teapot.obj --envmap courtyard.exr --envmap-yaw 30 --preset coat \\
         --resolution 64 --spp 256 --random 8 --out runs/cycles/coat          # and sheen, metal, diffuse
     NEUMATEX_SHARED=../shared .venv/bin/python bench/cycles_extract.py runs/cycles/coat runs/cycles/sheen
+    NEUMATEX_SHARED=../shared bench/cycles_matrix.sh     # coat, sheen, metal, diffuse on four shared meshes
 
 Per capture (23 preset views, 8 held-out photos at random poses in photos/, held-out maps in relight/<j>/; Cycles,
 256 spp): the pipeline's validate / prepare_views / lmrm stages, then two TTOs on the preset views through
@@ -11,13 +12,24 @@ Per capture (23 preset views, 8 held-out photos at random poses in photos/, held
 the extraction's default (`ExtractConfig.preset("cpu")`: PBR TTO, then the neural TTO from its solution anchored
 to it). Each is rendered at --spp with our path tracer and scored (PSNR after the capture's tonemap, covered pixels)
 on the held-out photos (capture lighting, unseen poses) and on every relit view (unseen lighting). Prints neural -
-PBR per capture and writes a JSON line to bench/results/cycles_extract.jsonl. The reference is Cycles itself at
-256 spp, so both rows carry the same Cycles noise; the difference is the figure.
+PBR per capture, then per Principled preset the mean over captures with its standard error, and writes a JSON line
+to bench/results/cycles_extract.jsonl. The reference is Cycles itself at 256 spp, so both rows carry the same Cycles
+noise (it adds the same MSE to both, so the dB difference understates the clean one); the difference is the figure.
+Each capture's scores are kept in <work>/<capture name>/scores.json, so an interrupted run resumes (`--again`
+recomputes them).
+
+Clean scores: when a twin capture <capture>.seed1 exists (the same views rendered by Cycles with another --seed and
+the same --pose-seed, as bench/cycles_matrix.sh writes), each render is also scored noise-corrected
+(`eval.references.clean_psnr`, radiance average: Cycles' two renders at the capture's spp, ours rendered twice at
+--clean-spp with independent seeds), pooled over the folder's views: `photos_clean_db` and `relit_clean_db`, in
+place of the raw scores. Both Cycles' and our noise are taken out, so these differences are not compressed by
+either.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from dataclasses import replace
@@ -27,18 +39,52 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import numpy as np  # noqa: E402
 from common import write_result  # noqa: E402
 
+from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.eval.harness import _render_psnr  # noqa: E402
-from neumatex_core.eval.references import harness_envmap  # noqa: E402
+from neumatex_core.eval.references import CLEAN_TAG, clean_psnr, coverage_mask, half_seed, harness_envmap  # noqa: E402
+from neumatex_core.imageio import read_image  # noqa: E402
+from neumatex_core.materials.field import MaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage  # noqa: E402
+from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig  # noqa: E402
+from neumatex_core.render.scene import Scene  # noqa: E402
 from neumatex_core.tto.data import PhotoSet  # noqa: E402
 from neumatex_core.tto.pbr_start import solve  # noqa: E402
 
+TWIN_SUFFIX = ".seed1"  # bench/cycles_matrix.sh's second capture of the same views
 
-def bench_capture(capture: Path, work: Path, spp: int, bounces: int) -> dict[str, Any]:
+
+def clean_render_psnr(folder: Path, twin: Path, field: MaterialField, spp: int, bounces: int, mesh: Any,
+                      lighting: int) -> float:
+    """Noise-corrected PSNR (dB) of `field` on every frame of the Cycles capture `folder`, pooled over its covered
+    pixels: ours rendered twice at `spp` (seeds half_seed(0, CLEAN_TAG, lighting, view, 0 | 1)) against the two
+    Cycles renders of each view (`folder` and its `twin`, linear EXR), `clean_psnr` with the radiance average (the
+    less biased one when ours has fewer samples than Cycles' 256; see its docstring)."""
+    cap = load_capture(folder)
+    frames = json.loads((folder / "transforms.json").read_text())["frames"]
+    twin_frames = json.loads((twin / "transforms.json").read_text())["frames"]
+    scene = Scene(mesh, harness_envmap(cap), field)
+    tracer = PathTracer(PathTracerConfig(spp=spp, max_bounces=bounces))
+    a: list[list[np.ndarray]] = [[], []]
+    r1, r2, masks = [], [], []
+    for v, (entry, twin_entry) in enumerate(zip(frames, twin_frames, strict=True)):
+        cam = cap.frames[v].camera
+        with torch.no_grad():
+            for h in (0, 1):
+                a[h].append(tracer.render(scene, cam, seed=half_seed(0, CLEAN_TAG, lighting, v, h)).cpu().numpy())
+        r1.append(read_image(folder / entry["linear_path"])[:, :, :3])
+        r2.append(read_image(twin / twin_entry["linear_path"])[:, :, :3])
+        masks.append(coverage_mask(cap, mesh, v))
+    score = clean_psnr(np.stack(a[0]), np.stack(a[1]), np.stack(r1), np.stack(r2), np.stack(masks), cap.tonemap,
+                       average="radiance")  # fmt: skip
+    return score.psnr
+
+
+def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: int) -> dict[str, Any]:
     config = ExtractConfig.preset("cpu", device="cpu")
     for stage in ("validate", "prepare_views", "lmrm"):
         run_stage(stage, capture, work, config)
@@ -52,12 +98,25 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int) -> dict[str
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)
     relit = sorted(p for p in (capture / "relight").glob("*") if (p / "transforms.json").is_file())
-    out: dict[str, Any] = {"capture": str(capture), "recipe": variants["neural"].to_dict()}
+    record = json.loads((capture / "cycles.json").read_text())
+    out: dict[str, Any] = {"capture": str(capture), "preset": record["preset"],
+                           "mesh": record["mesh"]["source"],
+                           "recipe": variants["neural"].to_dict()}  # fmt: skip
     for name, tto in variants.items():
         t0 = time.perf_counter()
         result = solve(tto, mesh, harness_envmap(cap), photos, cap.tonemap, pred, load_basis(), truth=None)
         seconds = time.perf_counter() - t0
         field, scene_mesh = result.params.field(), result.mesh or mesh
+        print(f"{capture.name} {name}: TTO {seconds:.0f} s, scoring", flush=True)
+        twin = capture.with_name(capture.name + TWIN_SUFFIX)
+        if (twin / "cycles.json").is_file():
+            relit_clean = [clean_render_psnr(r, twin / "relight" / r.name, field, clean_spp, bounces, scene_mesh,
+                                             j + 1) for j, r in enumerate(relit)]  # fmt: skip
+            out[name] = {"tto_s": round(seconds, 1), "clean_spp": clean_spp, "relit_clean_maps_db": relit_clean,
+                         "relit_clean_db": sum(relit_clean) / max(len(relit_clean), 1),
+                         "photos_clean_db": clean_render_psnr(held_out, twin / "photos", field, clean_spp, bounces,
+                                                              scene_mesh, 0)}  # fmt: skip
+            continue
         relit_db = [_render_psnr(r, field, range(len(load_capture(r).frames)), spp, bounces, 0, scene_mesh)
                     for r in relit]  # fmt: skip
         out[name] = {"tto_s": round(seconds, 1), "relit_maps_db": relit_db,
@@ -71,20 +130,59 @@ def main() -> int:
     parser.add_argument("captures", nargs="+", type=Path, help="captures written by `neumatex cycles-capture`")
     parser.add_argument("--work", default="runs/bench-cycles-extract", type=Path)
     parser.add_argument("--spp", type=int, default=256, help="samples per pixel of our scored renders")
+    parser.add_argument("--clean-spp", type=int, default=64,
+                        help="samples per pixel of each of our two half-renders in the clean scores")
     parser.add_argument("--max-bounces", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--again", action="store_true", help="recompute scores kept from an earlier run")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
     for capture in args.captures:
-        row = bench_capture(capture, args.work / capture.name, args.spp, args.max_bounces)
+        kept = args.work / capture.name / "scores.json"
+        if kept.is_file() and not args.again:
+            row = json.loads(kept.read_text())
+        else:
+            row = bench_capture(capture, args.work / capture.name, args.spp, args.max_bounces, args.clean_spp)
+            write_json_atomic(kept, row)
         rows.append(row)
         n, p = row["neural"], row["pbr"]
-        print(f"{capture.name}: held-out photos neural {n['photos_db']:.2f} dB, PBR {p['photos_db']:.2f} "
-              f"({n['photos_db'] - p['photos_db']:+.2f}); relit neural {n['relit_db']:.2f}, PBR {p['relit_db']:.2f} "
-              f"({n['relit_db'] - p['relit_db']:+.2f}); TTO {n['tto_s']:.0f} s / {p['tto_s']:.0f} s", flush=True)
-    print(f"appended to {write_result('cycles_extract', {'spp': args.spp, 'rows': rows})}")
+        for kind in ("", "_clean"):
+            if f"relit{kind}_db" not in n:
+                continue
+            ph, re = f"photos{kind}_db", f"relit{kind}_db"
+            print(f"{capture.name}{kind.replace('_', ', ')}: held-out photos neural {n[ph]:.2f} dB, PBR {p[ph]:.2f} "
+                  f"({n[ph] - p[ph]:+.2f}); relit neural {n[re]:.2f}, PBR {p[re]:.2f} ({n[re] - p[re]:+.2f}); "
+                  f"TTO {n['tto_s']:.0f} s / {p['tto_s']:.0f} s", flush=True)
+    summary = by_preset(rows)
+    print(f"appended to {write_result('cycles_extract', {'spp': args.spp, 'rows': rows, 'by_preset': summary})}")
     return 0
+
+
+def by_preset(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per Principled preset, the mean of each side and the paired neural - PBR difference (+- s.e. over captures);
+    prints it as a markdown table and returns it."""
+    out: dict[str, dict[str, Any]] = {}
+    keys = ("photos_clean_db", "relit_clean_db") if all("relit_clean_db" in r["neural"] for r in rows) else \
+        ("photos_db", "relit_db")
+    print(f"scores: {', '.join(keys)}")
+    print("| preset (captures) | photos: neural / PBR | neural - PBR | relit: neural / PBR | neural - PBR |")
+    print("|---|---|---|---|---|")
+    for preset in sorted({r.get("preset", "?") for r in rows}):
+        group = [r for r in rows if r.get("preset", "?") == preset]
+        entry: dict[str, Any] = {"captures": [r["capture"] for r in group]}
+        cells = []
+        for key in keys:
+            n = np.array([r["neural"][key] for r in group])
+            p = np.array([r["pbr"][key] for r in group])
+            d = n - p
+            se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+            entry[key] = {"neural": float(n.mean()), "pbr": float(p.mean()), "diff": float(d.mean()), "se": se,
+                          "worst": float(d.min())}  # fmt: skip
+            cells += [f"{n.mean():.2f} / {p.mean():.2f}", f"{d.mean():+.2f} +- {se:.2f} (worst {d.min():+.2f})"]
+        out[preset] = entry
+        print(f"| {preset} ({len(group)}) | {' | '.join(cells)} |")
+    return out
 
 
 if __name__ == "__main__":

@@ -42,7 +42,8 @@ YAW = 30.0  # a non-trivial envmap_to_world
 
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """Two diffuse captures that differ only in the Cycles seed (the first with photos/ and relight/0/)."""
+    """Two diffuse captures that differ only in the Cycles seed (the second keeps the first's random pose through
+    pose_seed; the first alone has relight/0/)."""
     if cycles_python() is None:
         pytest.skip(f"Blender Cycles venv not found at {CYCLES_VENV}: run `make cycles-env` to build it "
                     "(bpy from PyPI)")  # fmt: skip
@@ -55,7 +56,7 @@ def captures(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     a = root / "a"
     render_cycles_capture(out=a, seed=0, random=1, relight=[str(ENVMAPS / RELIGHT)], **common)
     b = root / "b"
-    render_cycles_capture(out=b, seed=7919, **common)
+    render_cycles_capture(out=b, seed=7919, random=1, pose_seed=0, **common)
     return a, b
 
 
@@ -99,6 +100,16 @@ def test_cameras_round_trip(captures: tuple[Path, Path]) -> None:
         want = camera_from_json(doc["random"][0])
         assert np.abs(photos.cameras[0].c2w - want.c2w).max() < 1e-12
         assert photos.cameras[0].fl_x == want.fl_x
+
+
+def test_pose_seed_renders_the_same_random_views_with_independent_noise(captures: tuple[Path, Path]) -> None:
+    a, b = captures
+    with load_capture(a / "photos") as pa, load_capture(b / "photos") as pb:
+        assert np.array_equal(pa.cameras[0].c2w, pb.cameras[0].c2w)
+        image_a, image_b = pa.load_image(0), pb.load_image(0)
+    assert np.abs(image_a - image_b).max() > 0  # another Cycles seed: other noise
+    assert json.loads((b / "cycles.json").read_text())["render"]["pose_seed"] == 0
+    assert json.loads((b / "cycles.json").read_text())["render"]["seed"] == 7919
 
 
 def test_agrees_with_our_renderer_within_cycles_noise(captures: tuple[Path, Path]) -> None:

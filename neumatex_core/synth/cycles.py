@@ -117,12 +117,15 @@ def render_cycles_capture(
     base_color: tuple[float, float, float] | None = None,
     verbose: bool = False,
     timeout: float | None = None,
+    pose_seed: int | None = None,
 ) -> dict[str, Any]:
     """Write a Cycles capture of `mesh` under `envmap` into `out`; returns its cycles.json record.
 
     views: "all" or preset view indices ("0,5,20"); random: views at random poses (photos/); relight: held-out maps,
     each "MAP" or "MAP@YAW_DEG" (relight/<j>/, the orbital views among `views`); envmap_scale None: normalised
-    brightness like the synthetic objects; max_bounces: surface interactions (ours; Cycles gets one less).
+    brightness like the synthetic objects; max_bounces: surface interactions (ours; Cycles gets one less);
+    pose_seed: the random views' poses (None: `seed`), so two captures with the same pose_seed and different seeds
+    are independent renders of the same views (the halves of a noise-corrected score).
     Raises CyclesError when `.venv-cycles` is missing (run `make cycles-env`) or Blender fails.
     """
     python = cycles_python()
@@ -135,7 +138,8 @@ def render_cycles_capture(
         name, _, yaw = str(spec).partition("@")
         relight_args.append(str(shared_file(name, "envmaps")) + (f"@{yaw}" if yaw else ""))
     with tempfile.TemporaryDirectory(prefix="neumatex-cycles-") as tmp:
-        cams = write_cameras_json(Path(tmp) / "cameras.json", resolution, random, seed)
+        cams = write_cameras_json(Path(tmp) / "cameras.json", resolution, random,
+                                  seed if pose_seed is None else pose_seed)
         cmd = [str(python), str(CYCLES_SCRIPT), "--mesh", str(shared_file(mesh, "meshes")),
                "--envmap", str(shared_file(envmap, "envmaps")), "--cameras", str(cams), "--out", str(out),
                "--preset", preset, "--spp", str(spp), "--views", views, "--random", str(random),
@@ -275,7 +279,9 @@ class CyclesCaptureConfig:
     relight: str = option("city.exr,forest.exr", "held-out maps, comma separated (MAP or MAP@YAW_DEG); empty: none")
     envmap_yaw: float = option(0.0, "rotation of the map about +Y, degrees")
     envmap_scale: float = option(0.0, "envmap_scale (0: normalised brightness like the synthetic objects)")
-    seed: int = option(0, "Cycles seed of view 0, and the random views' seed")
+    seed: int = option(0, "Cycles seed of view 0, and the random views' seed unless --pose-seed is given")
+    pose_seed: int = option(-1, "seed of the random views' poses (-1: --seed); the same --pose-seed with another "
+                                "--seed renders the same views with independent noise")
     threads: int = option(1, "Cycles render threads")
     max_bounces: int = option(3, "surface interactions per path (1 = direct lighting only)")
 
@@ -285,7 +291,7 @@ def run_cycles_capture(cfg: CyclesCaptureConfig) -> int:
     relight = [m.strip() for m in cfg.relight.split(",") if m.strip()]
     render_cycles_capture(cfg.mesh, cfg.envmap, cfg.out, cfg.preset, cfg.resolution, cfg.spp, cfg.views, cfg.random,
                           relight, cfg.envmap_yaw, cfg.envmap_scale or None, cfg.seed, cfg.threads, cfg.max_bounces,
-                          verbose=True)
+                          verbose=True, pose_seed=None if cfg.pose_seed < 0 else cfg.pose_seed)
     return 0
 
 
