@@ -16,10 +16,11 @@ PBR per capture, then per Principled preset the mean over captures with its stan
 to bench/results/cycles_extract.jsonl. The reference is Cycles itself at 256 spp, so both rows carry the same Cycles
 noise (it adds the same MSE to both, so the dB difference understates the clean one); the difference is the figure.
 Each capture's scores are kept in <work>/<capture name>/scores.json, so an interrupted run resumes (`--again`
-recomputes them).
+recomputes them). `--variants pbr,neural,ours_pbr_start_no_reg` adds a `neumatex eval` variant (here the default
+without its anchor to the PBR start; only the missing variants are run), each compared with the PBR baseline.
 
 Clean scores: when a twin capture <capture>.seed1 exists (the same views rendered by Cycles with another --seed and
-the same --pose-seed, as bench/cycles_matrix.sh writes), each render is also scored noise-corrected
+the same --pose-seed, as bench/cycles_matrix.sh writes), each render is scored noise-corrected
 (`eval.references.clean_psnr`, radiance average: Cycles' two renders at the capture's spp, ours rendered twice at
 --clean-spp with independent seeds), pooled over the folder's views: `photos_clean_db` and `relit_clean_db`, in
 place of the raw scores. Both Cycles' and our noise are taken out, so these differences are not compressed by
@@ -32,7 +33,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +46,15 @@ from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.eval.harness import _render_psnr  # noqa: E402
 from neumatex_core.eval.references import CLEAN_TAG, clean_psnr, coverage_mask, half_seed, harness_envmap  # noqa: E402
+from neumatex_core.eval.variants import VARIANTS as EVAL_VARIANTS  # noqa: E402
+from neumatex_core.eval.variants import variant_config  # noqa: E402
 from neumatex_core.imageio import read_image  # noqa: E402
 from neumatex_core.materials.field import MaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage  # noqa: E402
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig  # noqa: E402
 from neumatex_core.render.scene import Scene  # noqa: E402
+from neumatex_core.tto.config import TTOConfig  # noqa: E402
 from neumatex_core.tto.data import PhotoSet  # noqa: E402
 from neumatex_core.tto.pbr_start import solve  # noqa: E402
 
@@ -84,7 +87,19 @@ def clean_render_psnr(folder: Path, twin: Path, field: MaterialField, spp: int, 
     return score.psnr
 
 
-def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: int) -> dict[str, Any]:
+def variant_tto(name: str, default: TTOConfig) -> TTOConfig:
+    """"neural": the extraction's default; any other name: that `neumatex eval` variant (eval/variants.py) on it."""
+    if name == "neural":
+        return default
+    tto = variant_config(name, default)
+    if tto is None:
+        raise ValueError(f"variant {name!r} runs no TTO")
+    return tto
+
+
+def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: int, names: list[str],
+                  out: dict[str, Any]) -> dict[str, Any]:
+    """Add the scores of the variants `names` that `out` (the capture's kept row, or {}) lacks; returns it."""
     config = ExtractConfig.preset("cpu", device="cpu")
     for stage in ("validate", "prepare_views", "lmrm"):
         run_stage(stage, capture, work, config)
@@ -93,15 +108,13 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
     mesh = cap.load_mesh()
     photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
                       [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
-    variants = {"pbr": replace(config.tto_config(), material="pbr", init="lmrm", reg="none"),
-                "neural": config.tto_config()}  # fmt: skip
+    variants = {name: variant_tto(name, config.tto_config()) for name in names if name not in out}
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)
     relit = sorted(p for p in (capture / "relight").glob("*") if (p / "transforms.json").is_file())
     record = json.loads((capture / "cycles.json").read_text())
-    out: dict[str, Any] = {"capture": str(capture), "preset": record["preset"],
-                           "mesh": record["mesh"]["source"],
-                           "recipe": variants["neural"].to_dict()}  # fmt: skip
+    out.update({"capture": str(capture), "preset": record["preset"], "mesh": record["mesh"]["source"],
+                "recipe": config.tto_config().to_dict()})  # fmt: skip
     for name, tto in variants.items():
         t0 = time.perf_counter()
         result = solve(tto, mesh, harness_envmap(cap), photos, cap.tonemap, pred, load_basis(), truth=None)
@@ -135,45 +148,52 @@ def main() -> int:
     parser.add_argument("--max-bounces", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--again", action="store_true", help="recompute scores kept from an earlier run")
+    parser.add_argument("--variants", default="pbr,neural",
+                        help="TTO variants, comma separated: pbr (the baseline), neural (the extraction's default) "
+                             "and any `neumatex eval` variant (eval/variants.py); each is compared with pbr")
     args = parser.parse_args()
+    names = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in names if v != "neural" and v not in EVAL_VARIANTS]
+    if unknown or "pbr" not in names:
+        parser.error(f"--variants: unknown {unknown} or no pbr (variants: neural, {', '.join(EVAL_VARIANTS)})")
     torch.set_num_threads(args.threads)
     rows = []
     for capture in args.captures:
         kept = args.work / capture.name / "scores.json"
-        if kept.is_file() and not args.again:
-            row = json.loads(kept.read_text())
-        else:
-            row = bench_capture(capture, args.work / capture.name, args.spp, args.max_bounces, args.clean_spp)
+        row = json.loads(kept.read_text()) if kept.is_file() and not args.again else {}
+        if any(name not in row for name in names):
+            row = bench_capture(capture, args.work / capture.name, args.spp, args.max_bounces, args.clean_spp, names,
+                                row)  # fmt: skip
             write_json_atomic(kept, row)
         rows.append(row)
-        n, p = row["neural"], row["pbr"]
-        for kind in ("", "_clean"):
-            if f"relit{kind}_db" not in n:
-                continue
+        p = row["pbr"]
+        for name in (n for n in names if n != "pbr"):
+            n = row[name]
+            kind = "_clean" if "relit_clean_db" in n else ""
             ph, re = f"photos{kind}_db", f"relit{kind}_db"
-            print(f"{capture.name}{kind.replace('_', ', ')}: held-out photos neural {n[ph]:.2f} dB, PBR {p[ph]:.2f} "
-                  f"({n[ph] - p[ph]:+.2f}); relit neural {n[re]:.2f}, PBR {p[re]:.2f} ({n[re] - p[re]:+.2f}); "
+            print(f"{capture.name}{kind.replace('_', ', ')}: held-out photos {name} {n[ph]:.2f} dB, PBR {p[ph]:.2f} "
+                  f"({n[ph] - p[ph]:+.2f}); relit {name} {n[re]:.2f}, PBR {p[re]:.2f} ({n[re] - p[re]:+.2f}); "
                   f"TTO {n['tto_s']:.0f} s / {p['tto_s']:.0f} s", flush=True)
-    summary = by_preset(rows)
+    summary = {name: by_preset(rows, name) for name in names if name != "pbr"}
     print(f"appended to {write_result('cycles_extract', {'spp': args.spp, 'rows': rows, 'by_preset': summary})}")
     return 0
 
 
-def by_preset(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Per Principled preset, the mean of each side and the paired neural - PBR difference (+- s.e. over captures);
-    prints it as a markdown table and returns it."""
+def by_preset(rows: list[dict[str, Any]], variant: str = "neural") -> dict[str, dict[str, Any]]:
+    """Per Principled preset, the mean of each side and the paired `variant` - PBR difference (+- s.e. over
+    captures); prints it as a markdown table and returns it."""
     out: dict[str, dict[str, Any]] = {}
-    keys = ("photos_clean_db", "relit_clean_db") if all("relit_clean_db" in r["neural"] for r in rows) else \
+    keys = ("photos_clean_db", "relit_clean_db") if all("relit_clean_db" in r[variant] for r in rows) else \
         ("photos_db", "relit_db")
-    print(f"scores: {', '.join(keys)}")
-    print("| preset (captures) | photos: neural / PBR | neural - PBR | relit: neural / PBR | neural - PBR |")
+    print(f"{variant} against pbr; scores: {', '.join(keys)}")
+    print(f"| preset (captures) | photos: {variant} / PBR | difference | relit: {variant} / PBR | difference |")
     print("|---|---|---|---|---|")
     for preset in sorted({r.get("preset", "?") for r in rows}):
         group = [r for r in rows if r.get("preset", "?") == preset]
         entry: dict[str, Any] = {"captures": [r["capture"] for r in group]}
         cells = []
         for key in keys:
-            n = np.array([r["neural"][key] for r in group])
+            n = np.array([r[variant][key] for r in group])
             p = np.array([r["pbr"][key] for r in group])
             d = n - p
             se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
