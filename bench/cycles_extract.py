@@ -117,7 +117,8 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
                 "recipe": config.tto_config().to_dict()})  # fmt: skip
     for name, tto in variants.items():
         t0 = time.perf_counter()
-        result = solve(tto, mesh, harness_envmap(cap), photos, cap.tonemap, pred, load_basis(), truth=None)
+        result = solve(tto, mesh, harness_envmap(cap), photos, cap.tonemap, pred, load_basis(basis_id=tto.basis),
+                       truth=None)  # fmt: skip
         seconds = time.perf_counter() - t0
         field, scene_mesh = result.params.field(), result.mesh or mesh
         print(f"{capture.name} {name}: TTO {seconds:.0f} s, scoring", flush=True)
