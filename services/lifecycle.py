@@ -14,6 +14,8 @@ dropped. The transitions:
 - `cancel`       the client canceled a queued or running job (the worker notices within cancel_poll_s)
 - `requeue`      back to queued with a new attempt (a retry, or `requeue_stale` for a worker that vanished)
 - `redispatch_lost`   jobs whose next message never reached the broker are sent again
+- `redispatch_unclaimed`   jobs whose message reached the broker but no worker claimed it, while their queue is
+                 empty (a worker took it and lost its broker connection before claiming), are sent again
 
 Every state change that can race is one conditional UPDATE on (id, attempt, worker, state) so exactly one side
 wins; the API, the workers and the reaper (services/reaper.py, on Celery beat) all go through here.
@@ -274,6 +276,31 @@ def redispatch_lost() -> list[str]:
                               Job.updated_at < older)  # fmt: skip
         todo = [(job.id, nxt, job.attempt, job.queue) for job in s.scalars(q) if (nxt := next_stage(job))]
     return [job_id for job_id, stage, attempt, q in todo if dispatch(job_id, stage, attempt, q)]
+
+
+def redispatch_unclaimed() -> list[str]:
+    """Send again the active jobs that were dispatched more than redispatch_after_s ago, that no worker has claimed,
+    and whose stage queue holds no waiting message; returns their ids.
+
+    Their message is not waiting in the queue (a job behind others keeps it non-empty), so a worker took it and
+    never claimed the job: it lost its broker connection first (Redis restarted, network cut) or died between the
+    two. The broker keeps such a message unacknowledged until the visibility timeout (hours), and the job would
+    wait as long. A duplicate message is harmless: `claim` drops it ("not next", "held by another worker")."""
+    older = now() - timedelta(seconds=get_settings().redispatch_after_s)
+    with session_scope() as s:
+        q = select(Job).where(Job.state.in_(ACTIVE), Job.worker.is_(None), Job.dispatched_at.is_not(None),
+                              Job.dispatched_at < older)  # fmt: skip
+        todo = [(job.id, nxt, job.attempt, job.queue) for job in s.scalars(q) if (nxt := next_stage(job))]
+    empty: dict[str, bool] = {}
+    sent = []
+    for job_id, stage, attempt, queue in todo:
+        name = stage_queue(stage, queue)
+        if name not in empty:
+            empty[name] = broker.waiting(name) == 0
+        if empty[name] and dispatch(job_id, stage, attempt, queue):
+            log.warning("job %s: its %s message was taken but never claimed; sent again", job_id, stage)
+            sent.append(job_id)
+    return sent
 
 
 # -- worker side ----------------------------------------------------------------------------------------------

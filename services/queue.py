@@ -72,3 +72,15 @@ def send_stage(job_id: str, stage: str, attempt: int, queue: str) -> bool:
     except Exception as exc:  # broker down: the job row stays undispatched and the reaper retries
         log.warning("could not send %s/%s to the broker: %s", job_id, stage, exc)
         return False
+
+
+def waiting(queue: str) -> int | None:
+    """How many messages wait in `queue` on the broker, not yet taken by a worker (a message a worker has taken
+    but not acknowledged is not counted); None (logged) when the broker cannot be reached."""
+    try:
+        with producer().connection_for_write() as conn:
+            conn.ensure_connection(max_retries=1)  # the app retries forever by default; the reaper must not hang
+            return int(conn.default_channel.queue_declare(queue=queue).message_count)
+    except Exception as exc:
+        log.warning("could not count the messages of queue %s: %s", queue, exc)
+        return None

@@ -1,7 +1,8 @@
 """The reaper: re-queues running jobs whose worker stopped sending heartbeats (killed, machine gone), resuming
 from the first unfinished stage with a new attempt, and sends again the jobs whose next message never reached the
-broker (services/lifecycle.py does both). With `clean` it also removes upload sessions and staging folders older
-than upload_ttl_s, and finished jobs' work folders older than work_retention_s (services/cleanup.py).
+broker or was taken by a worker that never claimed the job (services/lifecycle.py does all three). With `clean`
+it also removes upload sessions and staging folders older than upload_ttl_s, and finished jobs' work folders older
+than work_retention_s (services/cleanup.py).
 
 It runs on Celery beat: `python -m services beat` (also started by `python -m services serve`) sends the
 `neumatex.reap` task (workers/tasks.py) to the maintenance queue, which only the beat process takes, every
@@ -29,7 +30,7 @@ CLEAN_EVERY_S = 60.0  # the cleanup passes (staging, retention) run this often
 
 def reap_once() -> list[str]:
     """One pass; returns the ids of the jobs sent again (re-queued, or whose message had not reached the broker)."""
-    return lifecycle.requeue_stale() + lifecycle.redispatch_lost()
+    return lifecycle.requeue_stale() + lifecycle.redispatch_lost() + lifecycle.redispatch_unclaimed()
 
 
 def clean_staging() -> int:

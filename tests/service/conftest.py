@@ -74,6 +74,20 @@ def service(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFac
     svc.stop()
 
 
+@pytest.fixture(autouse=True)
+def stop_test_workers(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Stop the workers a test started when it ends, passed or failed: the service is shared by the session, so a
+    worker left running by a failed test would take later tests' jobs and fail them too."""
+    if "service" not in request.fixturenames:
+        yield
+        return
+    service: Service = request.getfixturevalue("service")
+    before = len(service.workers)
+    yield
+    for worker in service.workers[before:]:
+        worker.stop()
+
+
 @pytest.fixture(scope="module")
 def done(service: Service) -> Iterator[dict[str, Any]]:
     """One completed tiny job of tenant A, once per module (its worker is stopped afterwards)."""

@@ -1,6 +1,7 @@
 """Surviving faults with real processes: kill -9 of the worker in the middle of TTO (re-queued by the reaper on
 Celery beat, with the API stopped meanwhile so nothing else can do it), Redis restarted mid-job (and a job
-submitted while it was down, sent later by the reaper), the API restarted mid-job, and cancel during TTO followed by
+submitted while it was down, sent later by the reaper), a stage message taken by a worker that never claimed it
+(sent again by the reaper), the API restarted mid-job, and cancel during TTO followed by
 a retry that resumes on the freed worker. Stage runs come from the job record; done.json times and the TTO history
 from the stage outputs in storage."""
 
@@ -13,8 +14,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import redis
 
 from neumatex_core.pipeline import STAGES
+from services.cluster import FAST
 
 from .helpers import Service, capture_zip, job, sql, sse_events, submit, upload, wait_for, wait_state
 
@@ -129,6 +132,30 @@ def test_redis_restarted_mid_job_no_job_lost(service: Service) -> None:
     assert_each_stage_once(service, done_b)
     assert all(r["status"] == "finished" for r in done_a["stage_runs"] + done_b["stage_runs"])
     worker.stop()
+
+
+def test_message_taken_but_never_claimed_is_sent_again_once_its_queue_is_empty(service: Service) -> None:
+    """A worker that took a stage message and lost its broker connection before claiming the job leaves the message
+    unacknowledged in Redis for the visibility timeout (8 h): the reaper sends it again once the job has waited
+    redispatch_after_s unclaimed with its queue empty, and not while the message waits in the queue."""
+    broker = redis.Redis.from_url(service.redis.url)
+    broker.delete("cpu")  # stale messages of earlier tests' ended jobs (no worker runs now), so counts are this job's
+    with service.client() as c:
+        cap = upload(c, capture_zip()).json()
+        j = submit(c, cap["id"])  # no worker yet: the validate message waits in the cpu queue
+        wait_for(lambda: sql(service, "SELECT dispatched_at FROM jobs WHERE id = :id", id=j["id"])[0][0], 30,
+                 "the job dispatched")  # fmt: skip
+        assert broker.llen("cpu") == 1
+        time.sleep(float(FAST["NEUMATEX_REDISPATCH_AFTER_S"]) + 2 * float(FAST["NEUMATEX_REAPER_EVERY_S"]))
+        assert broker.llen("cpu") == 1, "a message still waiting in its queue was sent twice"
+        assert broker.rpop("cpu") is not None  # taken by a worker that then lost its connection (kombu: BRPOP)
+        worker = service.start_worker()
+        try:
+            done = wait_state(c, j["id"], ("completed", "failed"), 240, service)
+        finally:
+            worker.stop()
+    assert_each_stage_once(service, done)
+    assert done["attempt"] == 1
 
 
 def test_api_restarted_mid_job_job_finishes(service: Service) -> None:
