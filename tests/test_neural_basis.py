@@ -237,6 +237,25 @@ def test_training_is_deterministic_and_resumable(tmp_path: Path) -> None:
         torch.set_num_threads(threads)
 
 
+def test_training_batches_and_latent_size(tmp_path: Path) -> None:
+    """A batch depends on its generator, not on the device it is evaluated on (the random numbers are drawn on the
+    CPU in one order: issue 14's GPU training reproduces CPU batches); a latent size other than the paper's 6 is
+    built, recorded in the schedule, and refuses to resume another size's checkpoint."""
+    from neumatex_core.materials.basis_training import Batch, _generator, _schedule, draw_batch
+
+    a = draw_batch(512, _generator(0, "bsdf", 3))
+    b = draw_batch(512, _generator(0, "bsdf", 3), device=torch.device("cpu"))
+    assert all(torch.equal(getattr(a, k), getattr(b, k)) for k in Batch.__dataclass_fields__)
+    assert not torch.equal(a.wi, draw_batch(512, _generator(0, "bsdf", 4)).wi)
+    cfg = TrainBasisConfig(out=str(tmp_path / "l8"), latent_dim=8, **TINY)  # type: ignore[arg-type]
+    basis, metrics = train_basis(cfg, torch.device("cpu"))
+    assert basis.arch.latent_dim == 8 and basis.encode(torch.rand(3, 22)).shape == (3, 8)
+    assert metrics["config"]["latent_dim"] == 8  # type: ignore[index]
+    assert "latent_dim" not in _schedule(TrainBasisConfig(**TINY))  # type: ignore[arg-type]  # v1-v3 records unchanged
+    with pytest.raises(ValueError, match="different schedule"):
+        train_basis(TrainBasisConfig(out=str(tmp_path / "l8"), latent_dim=12, **TINY), torch.device("cpu"))  # type: ignore[arg-type]
+
+
 def test_neural_sphere_matches_analytic(basis, shared_data: Path) -> None:  # type: ignore[no-untyped-def]
     """Plastic and metal spheres under studio.exr: the neural render matches the analytic one (common random
     numbers, so the difference is the BSDF error). Thresholds sit ~1.5 dB under what the shipped basis gives on
@@ -275,7 +294,7 @@ def test_every_shipped_basis_loads_and_matches_its_record() -> None:
     import neumatex_core.materials.neural_basis as nb
 
     bases = nb.installed_bases()
-    assert len(bases) >= 2  # v1 (the default) and v2
+    assert len(bases) >= 3  # v1 (the default), v2 and v3
     for basis_id in bases:
         b = nb.load_basis("cpu", basis_id)
         assert b.basis_id == basis_id

@@ -36,7 +36,7 @@ import torch
 from neumatex_core.config import option
 from neumatex_core.materials.base import luminance
 from neumatex_core.materials.layered import INDEX, N_PARAMS, LayeredMaterial
-from neumatex_core.materials.neural_basis import BasisArchitecture, NeuralBasis
+from neumatex_core.materials.neural_basis import LATENT_DIM, BasisArchitecture, NeuralBasis
 from neumatex_core.materials.prior import FAMILIES, ROUGHNESS_MIN, sample_parameters
 
 EPS = 1e-3  # f cos below this (1/sr) is invisible next to any diffuse base; log-space loss floor
@@ -62,6 +62,8 @@ class TrainBasisConfig:
     aux_weight: float = option(0.0, "weight of the T/R loss in the bsdf stage (0: the aux network trains alone)")
     chroma_weight: float = option(0.0, "weight of the log-chromaticity L1 in the bsdf stage")
     init: str = option("", "start from these basis weights (.safetensors) instead of random ones")
+    latent_dim: int = option(LATENT_DIM, "latent size (the paper's 6; other sizes are for experiments: the rest of "
+                             "the pipeline is built for 6)")
     install: bool = option(False, "also copy the trained weights into the package (neumatex_core/materials/data)")
     device: str = option("auto", "torch device: auto, cpu or cuda")
 
@@ -103,16 +105,21 @@ class Batch:
     reflected: torch.Tensor  # [N]
 
 
-def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, uniform_share: float = 0.25) -> Batch:
-    """Training samples on the CPU (the analytic material's tables live there): see the module docstring.
+def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, uniform_share: float = 0.25,
+               device: torch.device | None = None) -> Batch:
+    """Training samples on `device` (default CPU): see the module docstring.
 
+    The random numbers come from `g` on the CPU in a fixed order, so a batch depends on (g, n) and not on the
+    device; the analytic material is evaluated on `device` (on a GPU that is most of a step's work).
     params: [n, 22] to use instead of `draw_parameters` (e.g. one family's, for per-family metrics)."""
-    params = draw_parameters(n, g, uniform_share) if params is None else params
-    wo = uniform_hemisphere(n, g)
-    material = LayeredMaterial(params, torch.zeros(n, 3))  # no base: sampling follows f_spec's lobes
-    wi_imp, _ = material.sample(wo, torch.rand(n, generator=g), torch.rand(n, 2, generator=g))
-    wi_uni = uniform_hemisphere(n, g)
-    use_imp = torch.rand(n, generator=g) < 0.5
+    dev = torch.device("cpu") if device is None else device
+    params = (draw_parameters(n, g, uniform_share) if params is None else params).to(dev)
+    wo = uniform_hemisphere(n, g).to(dev)
+    u_lobe, u_dir = torch.rand(n, generator=g).to(dev), torch.rand(n, 2, generator=g).to(dev)
+    wi_uni = uniform_hemisphere(n, g).to(dev)
+    use_imp = (torch.rand(n, generator=g) < 0.5).to(dev)
+    material = LayeredMaterial(params, torch.zeros(n, 3, device=dev))  # no base: sampling follows f_spec's lobes
+    wi_imp, _ = material.sample(wo, u_lobe, u_dir)
     wi = torch.where(use_imp.unsqueeze(-1), wi_imp, wi_uni)
     ok = wi[:, 2] > 1e-4
     wi = torch.where(ok.unsqueeze(-1), wi, wi_uni)
@@ -193,8 +200,7 @@ def heldout_metrics(basis: NeuralBasis, n: int, seed: int, device: torch.device)
     g = _generator(seed, "heldout", 0)
     rel, log_l1, t_err, r_err = [], [], [], []
     for _ in range(4):
-        b = draw_batch(n, g)
-        b = _to(b, device)
+        b = draw_batch(n, g, device=device)
         latent = basis.encode(b.params)
         f = basis.bsdf(latent, b.wi, b.wo)
         cos_i = b.wi[:, 2].unsqueeze(-1)
@@ -212,10 +218,6 @@ def heldout_metrics(basis: NeuralBasis, n: int, seed: int, device: torch.device)
     }
 
 
-def _to(b: Batch, device: torch.device) -> Batch:
-    return Batch(*(getattr(b, k).to(device) for k in Batch.__dataclass_fields__))
-
-
 def train_basis(
     cfg: TrainBasisConfig, device: torch.device, progress: Callable[[str, int, int, float], None] | None = None
 ) -> tuple[NeuralBasis, dict[str, object]]:
@@ -224,11 +226,11 @@ def train_basis(
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
     torch.manual_seed(cfg.seed)
-    basis = NeuralBasis(BasisArchitecture()).to(device)
+    basis = NeuralBasis(BasisArchitecture(latent_dim=cfg.latent_dim)).to(device)
     if cfg.init:
         from safetensors.torch import load_file
 
-        basis.load_state_dict(load_file(cfg.init))  # the shapes must match BasisArchitecture()
+        basis.load_state_dict(load_file(cfg.init))  # the shapes must match the architecture
     history: dict[str, list[float]] = {s: [] for s in STAGES}
     seconds: dict[str, float] = {s: 0.0 for s in STAGES}
     start_stage, start_step, opt_state = 0, 0, None
@@ -252,7 +254,7 @@ def train_basis(
         basis.train()
         t0 = time.perf_counter()
         for step in range(first, steps[stage]):
-            b = _to(draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share), device)
+            b = draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share, device=device)
             loss = stage_loss(cfg, stage, basis, b)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -289,6 +291,7 @@ def _schedule(cfg: TrainBasisConfig) -> dict[str, object]:
     d = asdict(cfg)
     keys = ["seed", "batch", "steps_bsdf", "steps_aux", "steps_sampler", "lr"]
     v1 = TrainBasisConfig()
-    # v2's options enter the schedule only when set, so v1's record (and checkpoints) keep their meaning
-    keys += [k for k in ("uniform_share", "aux_weight", "chroma_weight", "init") if d[k] != getattr(v1, k)]
+    # options added after v1 enter the schedule only when set, so v1's record (and checkpoints) keep their meaning
+    later = ("uniform_share", "aux_weight", "chroma_weight", "init", "latent_dim")
+    keys += [k for k in later if d[k] != getattr(v1, k)]
     return {k: d[k] for k in keys}
