@@ -12,12 +12,13 @@ ones the LMRM's decoder was trained to produce). Longer (issue 14): the same at 
 steps) against the PBR baseline at 1400 steps (equal steps). Start anchor (issue 14): the neural TTO from the PBR
 solution held near its start (reg "start", weight 1, at two strengths), for relighting. BSDF start (issue 14): that
 default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`, tto/pbr_start.py
-`refine_to_pbr_bsdf`), in the default basis and in bases v2 and v3, and with the neural phase's learning rate at 1/4
-and 1/10 of the preset's (`neural_lr_scale`). Averaging (issue 14): PBR and that default with the result the mean
-iterate of the last half of each phase (`average_tail`). Decorrelated (issue 14): PBR and that default with the
-photometric loss of two independent half-estimates per pixel (`photo_loss`, tto/loss.py), so the render's Monte
-Carlo variance no longer pulls the material towards what renders with less noise. Spp32 (issue 14): the same rays
-per step as 256 pixels x 32 spp (the benchmark photos' own sample count) instead of 1024 x 8.
+`refine_to_pbr_bsdf`), in the default basis and in bases v2 and v3 (v3 also without the refinement), and with the
+neural phase's learning rate at 1/4 and 1/10 of the preset's (`neural_lr_scale`). Averaging (issue 14): PBR and that
+default with the result the mean iterate of the last half of each phase (`average_tail`). Decorrelated (issue 14):
+PBR and that default with the photometric loss of two independent half-estimates per pixel (`photo_loss`,
+tto/loss.py), so the render's Monte Carlo variance no longer pulls the material towards what renders with less noise.
+Spp32 (issue 14): the same rays per step as 256 pixels x 32 spp (the benchmark photos' own sample count) instead of
+1024 x 8.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_anchor_01_bsdf": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300},
     "pbr_start_anchor_01_bsdf_v2": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                     "pbr_bsdf_fit_steps": 300, "basis": BASIS_V2},
+    "pbr_start_anchor_01_v3": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "basis": BASIS_V3},
     "pbr_start_anchor_01_bsdf_v3": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                     "pbr_bsdf_fit_steps": 300, "basis": BASIS_V3},
     "pbr_start_bsdf_lr05": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300,
@@ -86,7 +88,8 @@ TABLES: dict[str, list[str]] = {
     "longer": ["pbr", "pbr_1400", "ours_pbr_start_no_reg", "pbr_start_1000", "pbr_start_v2_1000"],
     "start_anchor": ["pbr", "ours_pbr_start_no_reg", "pbr_start_anchor_01", "pbr_start_anchor_1"],
     "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
-                   "pbr_start_anchor_01_bsdf_v3", "pbr_start_bsdf_lr05", "pbr_start_bsdf_lr02"],
+                   "pbr_start_anchor_01_v3", "pbr_start_anchor_01_bsdf_v3", "pbr_start_bsdf_lr05",
+                   "pbr_start_bsdf_lr02"],
     "averaging": ["pbr", "pbr_avg", "pbr_start_anchor_01", "pbr_start_anchor_01_avg"],
     "spp32": ["pbr", "pbr_spp32", "pbr_start_anchor_01", "pbr_start_anchor_01_spp32"],
     "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",
