@@ -26,11 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from neumatex_core.materials.basis_training import (  # noqa: E402
     STAGES,
     TrainBasisConfig,
-    _generator,
-    draw_batch,
-    stage_loss,
     stage_parameters,
     train_basis,
+    training_step,
 )
 from neumatex_core.materials.neural_basis import BasisArchitecture, NeuralBasis  # noqa: E402
 
@@ -43,11 +41,7 @@ def seconds_per_step(cfg: TrainBasisConfig, stage: str, device: torch.device, pr
     opt = torch.optim.Adam(stage_parameters(basis, stage, cfg.aux_weight), lr=cfg.lr)
     n, t0 = 0, 0.0
     while True:
-        b = draw_batch(cfg.batch, _generator(cfg.seed, stage, n), uniform_share=cfg.uniform_share, device=device)
-        loss = stage_loss(cfg, stage, basis, b)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        training_step(cfg, stage, n, basis, opt, cfg.lr, device)
         if device.type == "cuda":
             torch.cuda.synchronize()
         n += 1

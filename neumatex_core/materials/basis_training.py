@@ -218,6 +218,19 @@ def heldout_metrics(basis: NeuralBasis, n: int, seed: int, device: torch.device)
     }
 
 
+def training_step(cfg: TrainBasisConfig, stage: str, step: int, basis: NeuralBasis, opt: torch.optim.Optimizer,
+                  lr: float, device: torch.device) -> torch.Tensor:
+    """One optimiser step of `stage` on step `step`'s batch at learning rate `lr`; returns the loss (with grad)."""
+    b = draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share, device=device)
+    loss = stage_loss(cfg, stage, basis, b)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    for group in opt.param_groups:
+        group["lr"] = lr
+    opt.step()
+    return loss
+
+
 def train_basis(
     cfg: TrainBasisConfig, device: torch.device, progress: Callable[[str, int, int, float], None] | None = None
 ) -> tuple[NeuralBasis, dict[str, object]]:
@@ -254,13 +267,7 @@ def train_basis(
         basis.train()
         t0 = time.perf_counter()
         for step in range(first, steps[stage]):
-            b = draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share, device=device)
-            loss = stage_loss(cfg, stage, basis, b)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            for group in opt.param_groups:
-                group["lr"] = cfg.lr * lr_factor(step)
-            opt.step()
+            loss = training_step(cfg, stage, step, basis, opt, cfg.lr * lr_factor(step), device)
             history[stage].append(float(loss.detach()))
             if progress is not None:
                 progress(stage, step + 1, steps[stage], history[stage][-1])
