@@ -22,9 +22,15 @@ Figures:
    features) on `--batch` points under no_grad, times the decoder's FLOPs per evaluation, as a fraction of the
    machine's peak FP32 rate measured in the same run by a 4096^2 matrix product.
 
+`--fit-latent N` renders the spheres of 2. with a latent fitted to the analytic material by N Adam steps through the
+frozen decoder and aux networks (from basis.encode(params); the training loss, bsdf log-L1 + 2 x |T, R| error)
+instead of the encoder's: the difference between the two runs is the encoder's share of the sphere error, what
+is left the decoder's (docs/design-notes.md item 31).
+
     .venv/bin/python bench/basis.py            # ~5 min on an idle 2-core CPU
     .venv/bin/python bench/basis.py --quick    # smoke run
     .venv/bin/python bench/basis.py --weights runs/basis/basis.safetensors   # a candidate, not the shipped one
+    .venv/bin/python bench/basis.py --families coated,fuzzy --fit-latent 300   # the encoder's share of the error
 """
 
 from __future__ import annotations
@@ -123,6 +129,26 @@ def sampling_variance(basis: NeuralBasis, n_materials: int, n_samples: int, seed
             "materials": k, "samples": n_samples}  # fmt: skip
 
 
+def fitted_latent(basis: NeuralBasis, params: torch.Tensor, steps: int, seed: int, n: int = 8192) -> torch.Tensor:
+    """The latent [latent_dim] in (-1, 1) whose decoded BSDF, T and R best match the analytic material `params`
+    [22]: `steps` Adam steps on atanh(latent) from basis.encode(params), the training loss on n direction pairs."""
+    with torch.no_grad():
+        start = basis.encode(params.unsqueeze(0))[0]
+    u = torch.atanh(start.clamp(-0.999, 0.999)).requires_grad_(True)
+    opt = torch.optim.Adam([u], lr=0.02)
+    for step in range(steps):
+        b = draw_batch(n, _generator(seed, "heldout", step), params.unsqueeze(0).expand(n, -1).contiguous())
+        z = torch.tanh(u).expand(n, -1)
+        f = torch.exp(basis.log_bsdf(z, b.wi, b.wo).clamp(max=12.0))
+        t, r = basis.transmission_reflectance(z, b.wo)
+        loss = (log_target(f, b.wi[:, 2]) - log_target(b.f_spec, b.wi[:, 2])).abs().mean() \
+            + 2 * ((t - b.transmission).abs().mean() + (r - b.reflected).abs().mean())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return torch.tanh(u).detach()
+
+
 def decoder_flops(basis: NeuralBasis) -> int:
     """Multiply-adds x 2 of the decoder MLP for one evaluation."""
     return sum(2 * m.in_features * m.out_features for m in basis.decoder if isinstance(m, torch.nn.Linear))
@@ -133,6 +159,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--heldout", type=int, default=10_000, help="held-out parameter sets")
     parser.add_argument("--per-family", type=int, default=2, help="sphere materials per family")
     parser.add_argument("--envmaps", type=str, default="", help="comma-separated maps (default: all shared)")
+    parser.add_argument("--fit-latent", type=int, default=0, help="spheres with a latent fitted by this many steps "
+                        "instead of the encoder's (0: the encoder's)")
+    parser.add_argument("--families", type=str, default="", help="comma-separated sphere families (default: all; "
+                        "the others' spheres are drawn and skipped, so each family's spheres stay the same)")
     parser.add_argument("--resolution", type=int, default=40)
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--batch", type=int, default=1 << 16, help="points per decoder evaluation")
@@ -169,15 +199,20 @@ def main(argv: list[str] | None = None) -> int:
     mis_b = SphereSettings(args.resolution, args.spp, seed=14, strategy="mis")
     gm = torch.Generator().manual_seed(BENCH_SEED + 2)
     psnr_rows: dict[str, dict[str, float]] = {}
+    sphere_families = args.families.split(",") if args.families else list(FAMILIES)
     for family in FAMILIES:
         params = sample_parameters(family, args.per_family, gm)
         colors = sample_base_color(family, args.per_family, gm)
+        if family not in sphere_families:
+            continue
+        latents = [fitted_latent(basis, params[i], args.fit_latent, BENCH_SEED + 5) if args.fit_latent else None
+                   for i in range(args.per_family)]  # fmt: skip
         raw, clean, clean_se, floor = [], [], [], []
         for path in map_paths:
             env = EnvironmentMap.from_file(path)
             for i in range(args.per_family):
-                analytic, neural = sphere_pair(params[i], colors[i], env, basis, settings, sphere)
-                analytic_b, neural_b = sphere_pair(params[i], colors[i], env, basis, settings_b, sphere)
+                analytic, neural = sphere_pair(params[i], colors[i], env, basis, settings, sphere, latents[i])
+                analytic_b, neural_b = sphere_pair(params[i], colors[i], env, basis, settings_b, sphere, latents[i])
                 mask = analytic.sum(-1) > 0
                 raw.append(psnr(tonemap(neural), tonemap(analytic), mask))
                 d_a = (tonemap(neural) - tonemap(analytic))[mask].cpu().numpy()
@@ -204,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     # 4. speed
     n = args.batch
     gs = torch.Generator().manual_seed(1)
-    latent = torch.rand(n, 6, generator=gs) * 2 - 1
+    latent = torch.rand(n, basis.arch.latent_dim, generator=gs) * 2 - 1
     wi = torch.nn.functional.normalize(torch.randn(n, 3, generator=gs), dim=-1).abs()
     wo = torch.nn.functional.normalize(torch.randn(n, 3, generator=gs), dim=-1).abs()
     x = torch.cat([latent, direction_features(wi, wo)], dim=-1)
@@ -223,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n| family | clean PSNR neural vs analytic (dB, mean / min) | raw (dB) | BSDF median rel. err. | T MAE |"
           " R MAE |")
     print("|---|---|---|---|---|---|")
-    for family in FAMILIES:
+    for family in sphere_families:
         p, e = psnr_rows[family], per_family_err[family]
         print(f"| {family} | {p['psnr_mean']:.1f} / {p['psnr_min']:.1f} | {p['raw_psnr_mean']:.1f} | "
               f"{e['bsdf_median_rel_error']:.3f} | {e['t_mae']:.4f} | {e['r_mae']:.4f} |")

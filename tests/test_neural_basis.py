@@ -19,7 +19,9 @@ from neumatex_core.materials.basis_training import TrainBasisConfig, heldout_met
 from neumatex_core.materials.neural_basis import (
     DEFAULT_RECORD,
     DEFAULT_WEIGHTS,
+    BasisArchitecture,
     BasisError,
+    NeuralBasis,
     NeuralMaterial,
     basis_record,
     check_basis_id,
@@ -254,6 +256,36 @@ def test_training_batches_and_latent_size(tmp_path: Path) -> None:
     assert "latent_dim" not in _schedule(TrainBasisConfig(**TINY))  # type: ignore[arg-type]  # v1-v3 records unchanged
     with pytest.raises(ValueError, match="different schedule"):
         train_basis(TrainBasisConfig(out=str(tmp_path / "l8"), latent_dim=12, **TINY), torch.device("cpu"))  # type: ignore[arg-type]
+
+
+def test_a_larger_latent_starts_from_a_trained_basis(tmp_path: Path) -> None:
+    """grow_latent widens a 6-number basis to 8 numbers without changing what it evaluates (bsdf, T/R, sampling
+    lobes), so `--init` with a larger `--latent-dim` fine-tunes from it; the new numbers do move in training."""
+    from safetensors.torch import load_file
+
+    from neumatex_core.materials.basis_training import grow_latent
+
+    small = NeuralBasis()
+    small.load_state_dict(load_file(str(DEFAULT_WEIGHTS)))
+    big = NeuralBasis(BasisArchitecture(latent_dim=8))
+    big.load_state_dict(grow_latent(small.state_dict(), big.state_dict()))
+    g = torch.Generator().manual_seed(5)
+    params = torch.rand(64, 22, generator=g)
+    wi = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([-0.5, -0.5, 0.1]), dim=-1)
+    wo = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([-0.5, -0.5, 0.1]), dim=-1)
+    with torch.no_grad():
+        z6, z8 = small.encode(params), big.encode(params)
+        assert torch.equal(z8[:, :6], z6) and z8[:, 6:].abs().max() > 0.01  # fresh rows: the new numbers vary
+        assert torch.allclose(big.bsdf(z8, wi, wo), small.bsdf(z6, wi, wo), rtol=1e-5, atol=1e-7)
+        for a, b in zip(big.transmission_reflectance(z8, wo), small.transmission_reflectance(z6, wo), strict=True):
+            assert torch.allclose(a, b, atol=1e-6)
+        for a, b in zip(big.lobes(z8, wo), small.lobes(z6, wo), strict=True):
+            assert torch.allclose(a, b, atol=1e-6)
+    with pytest.raises(ValueError, match="cannot be widened"):
+        grow_latent(small.state_dict(), NeuralBasis(BasisArchitecture(latent_dim=8, decoder_hidden=[32])).state_dict())
+    cfg = TrainBasisConfig(out=str(tmp_path / "g8"), latent_dim=8, init=str(DEFAULT_WEIGHTS), **TINY)  # type: ignore[arg-type]
+    trained, _ = train_basis(cfg, torch.device("cpu"))
+    assert trained.decoder[0].weight[:, 6:8].abs().max() > 0  # the zero columns learned something
 
 
 def test_neural_sphere_matches_analytic(basis, shared_data: Path) -> None:  # type: ignore[no-untyped-def]

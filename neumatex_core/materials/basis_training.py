@@ -61,7 +61,8 @@ class TrainBasisConfig:
     uniform_share: float = option(0.25, "share of parameter sets drawn uniformly instead of from the family prior")
     aux_weight: float = option(0.0, "weight of the T/R loss in the bsdf stage (0: the aux network trains alone)")
     chroma_weight: float = option(0.0, "weight of the log-chromaticity L1 in the bsdf stage")
-    init: str = option("", "start from these basis weights (.safetensors) instead of random ones")
+    init: str = option("", "start from these basis weights (.safetensors) instead of random ones (a smaller latent "
+                       "is widened: `grow_latent`)")
     latent_dim: int = option(LATENT_DIM, "latent size (the paper's 6; other sizes are for experiments: the rest of "
                              "the pipeline is built for 6)")
     install: bool = option(False, "also copy the trained weights into the package (neumatex_core/materials/data)")
@@ -231,6 +232,33 @@ def training_step(cfg: TrainBasisConfig, stage: str, step: int, basis: NeuralBas
     return loss
 
 
+def grow_latent(state: dict[str, torch.Tensor], target: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Basis weights `state` widened to the latent size of `target` (a fresh basis's state dict, same hidden
+    widths), so a larger latent starts from a trained basis instead of from scratch (docs/design-notes.md item 31).
+
+    The new latent entries get `target`'s freshly initialised encoder rows and zero input columns in the decoder,
+    aux and sampler networks: the widened basis evaluates exactly as `state` does, and training can only add what
+    the extra numbers carry. A `state` of the target's size is returned unchanged."""
+    encoder_weights = [k for k in state if k.startswith("encoder.") and k.endswith(".weight")]
+    enc_out = max(encoder_weights, key=lambda k: int(k.split(".")[1]))  # the output layer
+    d_old = state[enc_out].shape[0]
+    grown: dict[str, torch.Tensor] = {}
+    for key, value in state.items():
+        want = target[key]
+        if value.shape == want.shape:
+            grown[key] = value
+        elif key.startswith("encoder."):  # the output layer: one row (or bias entry) per latent number
+            w = want.detach().clone()
+            w[:d_old] = value
+            grown[key] = w
+        elif value.dim() == 2 and value.shape[0] == want.shape[0]:  # an input layer: [latent, other features]
+            n_new = want.shape[1] - value.shape[1]
+            grown[key] = torch.cat([value[:, :d_old], value.new_zeros(value.shape[0], n_new), value[:, d_old:]], 1)
+        else:
+            raise ValueError(f"{key}: shape {tuple(value.shape)} cannot be widened to {tuple(want.shape)}")
+    return grown
+
+
 def train_basis(
     cfg: TrainBasisConfig, device: torch.device, progress: Callable[[str, int, int, float], None] | None = None
 ) -> tuple[NeuralBasis, dict[str, object]]:
@@ -243,7 +271,8 @@ def train_basis(
     if cfg.init:
         from safetensors.torch import load_file
 
-        basis.load_state_dict(load_file(cfg.init))  # the shapes must match the architecture
+        # same layer widths as the architecture; a smaller latent is widened (design note 31)
+        basis.load_state_dict(grow_latent(load_file(cfg.init), basis.state_dict()))
     history: dict[str, list[float]] = {s: [] for s in STAGES}
     seconds: dict[str, float] = {s: 0.0 for s in STAGES}
     start_stage, start_step, opt_state = 0, 0, None

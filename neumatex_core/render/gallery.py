@@ -54,15 +54,17 @@ class SphereSettings:
 
 
 def sphere_pair(params: torch.Tensor, base_color: torch.Tensor, envmap: EnvironmentMap, basis: NeuralBasis,
-                settings: SphereSettings, sphere: Mesh | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                settings: SphereSettings, sphere: Mesh | None = None,
+                latent: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(analytic, neural) linear HDR images [H, W, 3] of the unit sphere; background black.
 
-    params [22] normalised layered parameters, base_color [3]. The neural latent is basis.encode(params).
+    params [22] normalised layered parameters, base_color [3]. The neural latent [latent_dim] is `latent`, by
+    default basis.encode(params).
     """
     device = envmap.device
     sphere = sphere if sphere is not None else icosphere(4)
     with torch.no_grad():
-        latent = basis.encode(params.unsqueeze(0).to(device))[0]
+        latent = basis.encode(params.unsqueeze(0).to(device))[0] if latent is None else latent.to(device)
         tracer = PathTracer(PathTracerConfig(max_bounces=1, spp=settings.spp, hide_background=True,
                                           strategy=settings.strategy))
         cam = sphere_camera(settings.resolution)
