@@ -487,7 +487,7 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
     return {**stops, "steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),
             "psnr_batch": float(np.mean([r["psnr"] for r in tail])), "photo_pixels": photos.size,
             "tto_s": time.perf_counter() - t0, "field": tto.field, "init": tto.init, "reg": tto.reg,
-            "material": tto.material}  # fmt: skip
+            "material": tto.material, **result.selection}  # fmt: skip
 
 
 EXPOSURE_FILE = "exposure.json"  # in the tto stage's folder: the fitted per-photo exposure multipliers

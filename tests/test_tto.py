@@ -300,6 +300,46 @@ def test_reg_start_anchors_the_neural_phase_to_its_pbr_start(example, truth_pred
         replace(cfg, init="lmrm").check()
 
 
+def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(example, truth_prediction, tmp_path):
+    """select_anchor: both phases fit all photos but the held-out ones (spread over the capture), the neural phase
+    anchored and free; the recorded held-out PSNRs are those of the two results (re-scored with the same seed they
+    come out the same), and the margin decides: a huge margin keeps the anchored result, a hugely negative one the
+    free one (no anchor term in its history). A PhotoSet subset keeps each photo's foreground pixels."""
+    from neumatex_core.tto import solve
+    from neumatex_core.tto.pbr_start import photo_psnr, validation_frames
+
+    photos = example.photos
+    assert validation_frames(23, 4) == [2, 8, 14, 20] and validation_frames(5, 4) == [0, 1, 3, 4]
+    with pytest.raises(ValueError, match="only 4"):
+        validation_frames(4, 4)
+    part = photos.subset([3, 1])
+    for new, old in ((0, 3), (1, 1)):
+        assert torch.equal(part.colour[part.pixel[:, 0] == new], photos.colour[photos.pixel[:, 0] == old])
+    assert part.cameras == [photos.cameras[3], photos.cameras[1]] and part.count == 2
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=1.0, select_anchor=True, select_margin_db=100.0)  # fmt: skip
+    cfg.check()
+    args = (example.mesh, example.envmap, photos, example.capture.tonemap, perturbed(truth_prediction, 0.2),
+            example.basis)  # fmt: skip
+    steps: list[int] = []
+    kept = solve(cfg, *args, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
+    assert steps == list(range(1, 13)) and kept.finished
+    assert {p.name for p in tmp_path.iterdir()} >= {"checkpoint_pbr.pt", "checkpoint.pt", "checkpoint_free.pt"}
+    sel = kept.selection
+    assert sel["anchor_kept"] == 1.0 and sel["validation_photos"] == 4.0
+    held = photos.subset(validation_frames(photos.count, 4))
+    again = photo_psnr(kept.params, kept.mesh, example.envmap, held, example.capture.tonemap, cfg, cfg.seed + 1)
+    assert again == pytest.approx(sel["validation_psnr_anchored"], abs=1e-6)
+    assert max(r["reg"] for r in kept.history if r["phase"] == 1.0) > 0
+    free = solve(replace(cfg, select_margin_db=-100.0), *args)
+    assert free.selection["anchor_kept"] == 0.0
+    assert free.selection["validation_psnr_free"] == pytest.approx(sel["validation_psnr_free"], abs=1e-6)
+    assert all(r["reg"] == 0.0 for r in free.history if r["phase"] == 1.0)
+    with pytest.raises(ValueError, match="select_anchor"):
+        replace(cfg, reg="none").check()
+
+
 def test_bsdf_refinement_recovers_what_the_encoder_conversion_loses(example, truth_prediction):
     """The encoder conversion (pbr_to_neural) of a rough grey metal keeps ~60% of its albedo in the shipped basis;
     the BSDF-space refinement of the start (refine_to_pbr_bsdf) brings the neural material's hemispherical albedo

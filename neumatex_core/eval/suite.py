@@ -60,6 +60,7 @@ ROW_NAMES = {
     "pbr_start_v2_1000": "neural from the PBR solution, no regulariser, basis v2, 1000 neural steps",
     "pbr_1400": "PBR baseline, 1400 steps",
     "pbr_start_anchor_01": "neural from the PBR solution, anchored to it (lambda 0.1)",
+    "pbr_start_anchor_select": "neural from the PBR solution, anchored (lambda 0.1) or not, chosen on held-out photos",
     "pbr_start_anchor_1": "neural from the PBR solution, anchored to it (lambda 1)",
     "pbr_start_anchor_01_bsdf": "neural from the PBR solution refined in BSDF space, anchored (lambda 0.1)",
     "pbr_start_anchor_01_bsdf_v2": "the same in basis v2",

@@ -10,7 +10,8 @@ Basis (issue 14, not in the paper): the neural TTO from the PBR solution in the 
 basis v2 (docs/design-notes.md, item 25), with the material decoder frozen or fine-tuned (v2's latents are not the
 ones the LMRM's decoder was trained to produce). Longer (issue 14): the same at 1000 neural steps (after 200 PBR
 steps) against the PBR baseline at 1400 steps (equal steps). Start anchor (issue 14): the neural TTO from the PBR
-solution held near its start (reg "start", weight 1, at two strengths), for relighting. BSDF start (issue 14): that
+solution held near its start (reg "start", weight 1, at two strengths), for relighting, and with the anchor
+kept or dropped by the error on held-out photos (`select_anchor`, docs/design-notes.md item 31). BSDF start (issue 14): that
 default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`, tto/pbr_start.py
 `refine_to_pbr_bsdf`), in the default basis and in bases v2 and v3 (v3 also without the refinement), and with the
 neural phase's learning rate at 1/4 and 1/10 of the preset's (`neural_lr_scale`). Averaging (issue 14): PBR and that
@@ -53,6 +54,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_v2_1000": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "steps": 1000},
     "pbr_start_anchor_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1},
     "pbr_start_anchor_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 1.0},
+    "pbr_start_anchor_select": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "select_anchor": True},
     "pbr_start_anchor_01_bsdf": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300},
     "pbr_start_anchor_01_bsdf_v2": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                     "pbr_bsdf_fit_steps": 300, "basis": BASIS_V2},
@@ -86,7 +88,8 @@ TABLES: dict[str, list[str]] = {
     "starts": ["pbr", "t3b_no_reg", "ours", "ours_pbr_start_no_reg", "ours_pbr_start"],
     "basis": ["pbr", "ours_pbr_start_no_reg", "pbr_start_v2", "pbr_start_v2_decoder"],
     "longer": ["pbr", "pbr_1400", "ours_pbr_start_no_reg", "pbr_start_1000", "pbr_start_v2_1000"],
-    "start_anchor": ["pbr", "ours_pbr_start_no_reg", "pbr_start_anchor_01", "pbr_start_anchor_1"],
+    "start_anchor": ["pbr", "ours_pbr_start_no_reg", "pbr_start_anchor_01", "pbr_start_anchor_1",
+                     "pbr_start_anchor_select"],
     "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
                    "pbr_start_anchor_01_v3", "pbr_start_anchor_01_bsdf_v3", "pbr_start_bsdf_lr05",
                    "pbr_start_bsdf_lr02"],

@@ -48,7 +48,8 @@ RANGES: dict[str, Range] = {
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
     "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_bsdf_fit_steps": Range(0, 100_000),
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
-    "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True)}  # fmt: skip
+    "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
+    "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,13 @@ class TTOConfig:
     photo_exposure: bool = False
     exposure_lr: float = 0.05
     photo_loss: PhotoLossKind = "l2"
+    # init "pbr", reg "start": the neural phase is run twice, with the anchor (lambda_reg) and without it, on all
+    # photos but `validation_photos` (spread over the capture), and the result that reproduces those held-out photos
+    # better is kept: the anchored one unless dropping the anchor gains more than select_margin_db of PSNR
+    # (tto/pbr_start.py `solve`; docs/design-notes.md item 31)
+    select_anchor: bool = False
+    validation_photos: int = 4
+    select_margin_db: float = 0.25
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:
@@ -148,6 +156,10 @@ class TTOConfig:
         if self.photo_loss != "l2" and self.spp < 2:
             raise ValueError(f"TTO photo_loss={self.photo_loss!r} pairs each pixel's samples: it needs spp >= 2, "
                              f"got {self.spp}")
+        if self.select_anchor and (self.reg != "start" or self.init != "pbr" or self.lambda_reg <= 0):
+            raise ValueError("TTO select_anchor chooses between the anchor to the PBR start and none: it needs init "
+                             f"'pbr', reg 'start' and lambda_reg > 0, got {self.init!r}, {self.reg!r}, "
+                             f"{self.lambda_reg}")
         if self.reg == "start" and self.init != "pbr":
             raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")
         if self.basis and (self.init == "lmrm" or self.reg not in ("none", "start")):

@@ -77,9 +77,29 @@ class PhotoSet:
         """Foreground pixels over all photos."""
         return int(self.pixel.shape[0])
 
+    def subset(self, frames: Sequence[int]) -> PhotoSet:
+        """The photos `frames` (in that order, renumbered 0..) as a set of their own, with the same foreground
+        pixels, cameras and exposures (no ray queries again)."""
+        keep = torch.as_tensor(list(frames), dtype=torch.long, device=self.device)
+        if keep.numel() == 0 or int(keep.min()) < 0 or int(keep.max()) >= self.count:
+            raise ValueError(f"photo subset {list(frames)} is empty or outside 0..{self.count - 1}")
+        renumber = torch.full((self.count,), -1, dtype=torch.long, device=self.device)
+        renumber[keep] = torch.arange(keep.numel(), device=self.device)
+        frame = renumber[self.pixel[:, 0].long()]
+        sel = frame >= 0
+        out = PhotoSet.__new__(PhotoSet)
+        out.device, out.cameras, out.exposure = self.device, [self.cameras[f] for f in frames], self.exposure[keep]
+        out.colour = self.colour[sel]
+        out.pixel = torch.cat([frame[sel].unsqueeze(-1).to(self.pixel.dtype), self.pixel[sel, 1:]], dim=1)
+        return out
+
     def batch(self, n: int, spp: int, generator: torch.Generator) -> RayBatch:
         """n pixels drawn uniformly (with replacement) from all foreground pixels, spp jittered rays each."""
-        idx = torch.randint(0, self.size, (n,), generator=generator, device=self.device)
+        return self.rays(torch.randint(0, self.size, (n,), generator=generator, device=self.device), spp, generator)
+
+    def rays(self, idx: torch.Tensor, spp: int, generator: torch.Generator) -> RayBatch:
+        """The foreground pixels idx [n] (int64, into 0..size-1), spp jittered rays each."""
+        n = idx.shape[0]
         pix = self.pixel[idx]
         jitter = torch.rand(n * spp, 2, generator=generator, device=self.device)
         xy = pix[:, 1:].repeat_interleave(spp, dim=0).float() + jitter

@@ -30,17 +30,21 @@ from neumatex_core.materials.basis_training import log_target, uniform_hemispher
 from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial
 from neumatex_core.materials.pbr import PBRMaterial
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural
+from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
+from neumatex_core.render.scene import Scene
 from neumatex_core.tto.config import TTOConfig
 from neumatex_core.tto.data import PhotoSet
-from neumatex_core.tto.loss import Anchor
+from neumatex_core.tto.loss import Anchor, photometric_loss
 from neumatex_core.tto.optimise import Progress, Truth, TTOResult, build_problem, optimise
-from neumatex_core.tto.params import NeuralTriplane, PBRTriplane
+from neumatex_core.tto.params import NeuralTriplane, Parametrisation, PBRTriplane
 
 FIT_POINTS = 1 << 15  # area samples the start is fitted on
 FIT_STEPS = 1500  # the default of TTOConfig.pbr_fit_steps
 FIT_LR = 0.05
 BSDF_FIT_BATCH = 4096  # surface points per step of `refine_to_pbr_bsdf`, one (wi, wo) pair each
 BSDF_FIT_LR = 0.02
+VALIDATION_SPP = 16  # path samples per held-out pixel when select_anchor scores the two results
+VALIDATION_RAYS = 1 << 16  # rays per chunk of that render
 
 
 def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor, latent: torch.Tensor, seed: int = 0,
@@ -133,18 +137,44 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     if config.init != "pbr":
         problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
         return optimise(problem, config, progress, should_stop, checkpoint("checkpoint.pt"))
+    if config.select_anchor:
+        return _solve_selecting_anchor(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
+                                       truth, progress, should_stop, checkpoint)  # fmt: skip
     total = config.total_steps()
-    # The phases start from the LMRM's structure (its PBR head; its triplane, refitted below). config.basis only
-    # named the basis the caller loaded (`basis`), so the phases drop it: LMRM-shaped starts are theirs by design.
-    pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="")
-    pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
-    pbr_progress = None if progress is None else (lambda s, _n, row: progress(s, total, {**row, "phase": 0.0}))
-    first = optimise(pbr_problem, pbr_config, pbr_progress, should_stop, checkpoint("checkpoint_pbr.pt"))
+    first = _pbr_phase(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
+                       _offset(progress, 0, total, 0.0), should_stop, checkpoint("checkpoint_pbr.pt"))
     if not first.finished:
         return first
+    return _neural_phase(config, first, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth,
+                         _offset(progress, config.pbr_steps, total, 1.0), should_stop, checkpoint("checkpoint.pt"))
+
+
+def _offset(progress: Progress | None, offset: int, total: int, phase: float) -> Progress | None:
+    """A phase's progress reported as steps of the whole TTO (`total`), its rows tagged with `phase`."""
+    return None if progress is None else (lambda s, _n, row: progress(offset + s, total, {**row, "phase": phase}))
+
+
+def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
+               prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool, progress: Progress | None,
+               should_stop: Callable[[], bool] | None, checkpoint: Path | None) -> TTOResult:
+    """Phase one: the PBR baseline's TTO from the LMRM's PBR head, `config.pbr_steps` steps."""
+    # The phases start from the LMRM's structure (its PBR head; its triplane, refitted below). config.basis only
+    # named the basis the caller loaded (`basis`), so the phases drop it: LMRM-shaped starts are theirs by design.
+    pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="",
+                         select_anchor=False)
+    pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
+    return optimise(pbr_problem, pbr_config, progress, should_stop, checkpoint)
+
+
+def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
+                  tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool,
+                  truth: Truth | None, progress: Progress | None, should_stop: Callable[[], bool] | None,
+                  checkpoint: Path | None) -> TTOResult:
+    """Phase two: the neural triplane fitted to the PBR solution `first`, then `config.steps` steps of neural TTO
+    (anchored to that start with weight config.lambda_reg when reg is "start"). The history holds both phases."""
     # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
-                            lr=config.lr * config.neural_lr_scale)
+                            lr=config.lr * config.neural_lr_scale, select_anchor=False)
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
@@ -157,9 +187,75 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
         with torch.no_grad():
             target = problem.params.gbuffer(points, None)
         problem.anchor = Anchor(points, None if uv is None else uv.to(points.device), target, torch.ones_like(target))
-    neural_progress = None if progress is None else (
-        lambda s, _n, row: progress(config.pbr_steps + s, total, {**row, "phase": 1.0}))
-    second = optimise(problem, neural_config, neural_progress, should_stop, checkpoint("checkpoint.pt"))
+    second = optimise(problem, neural_config, progress, should_stop, checkpoint)
     second.history = [*({**row, "phase": 0.0} for row in first.history),
                       *({**row, "phase": 1.0, "start_mse": start_mse} for row in second.history)]
     return second
+
+
+def validation_frames(count: int, k: int) -> list[int]:
+    """k photo indices spread evenly over 0..count-1 (every (count / k)-th photo, from the middle of the first
+    stride), held out by `select_anchor`; ValueError when fewer than k + 1 photos would leave none to fit."""
+    if count <= k:
+        raise ValueError(f"TTO select_anchor holds out {k} photos to choose the anchor, but the capture has only "
+                         f"{count}; lower validation_photos or turn select_anchor off")
+    return sorted({int((i + 0.5) * count / k) for i in range(k)})
+
+
+def photo_psnr(params: Parametrisation, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
+               config: TTOConfig, seed: int, spp: int = VALIDATION_SPP) -> float:
+    """PSNR (dB, display values) of the material `params` rendered at every foreground pixel of `photos` (spp
+    path samples each, the photos' given exposures) against them. Deterministic in seed, so two materials scored
+    with one seed share their pixels' jitter and light samples (common random numbers)."""
+    device = photos.device
+    scene = Scene(mesh, envmap, params.field(), device=device)
+    tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1), spp=spp))
+    g = torch.Generator(device=device).manual_seed(seed)
+    chunk = max(1, VALIDATION_RAYS // spp)
+    squared, count = 0.0, 0
+    with torch.no_grad():
+        for lo in range(0, photos.size, chunk):
+            idx = torch.arange(lo, min(lo + chunk, photos.size), device=device)
+            rays = photos.rays(idx, spp, g)
+            radiance = tracer.render_rays(scene, rays.origins, rays.directions, g)
+            _, mse = photometric_loss(radiance, rays.target, spp, tonemap, rays.exposure)
+            squared += float(mse) * idx.shape[0]
+            count += idx.shape[0]
+    return 10 * math.log10(1 / max(squared / count, 1e-12))
+
+
+def _solve_selecting_anchor(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
+                            tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool,
+                            truth: Truth | None, progress: Progress | None, should_stop: Callable[[], bool] | None,
+                            checkpoint: Callable[[str], Path | None]) -> TTOResult:
+    """config.select_anchor: both phases on all photos but `validation_frames`, the neural phase with the anchor and
+    without it, and the result whose render of the held-out photos scores higher (`photo_psnr`, one seed for
+    both) is returned, the anchored one unless the other gains more than config.select_margin_db. Its `selection`
+    records both scores and the choice; its exposures (photo_exposure) are 1 for the held-out photos."""
+    held_out = validation_frames(photos.count, config.validation_photos)
+    fit = [i for i in range(photos.count) if i not in held_out]
+    fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
+    total = config.pbr_steps + 2 * config.steps
+    first = _pbr_phase(config, mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
+                       _offset(progress, 0, total, 0.0), should_stop, checkpoint("checkpoint_pbr.pt"))
+    if not first.finished:
+        return first
+    results, scores = [], []
+    for k, (weight, name) in enumerate(((config.lambda_reg, "checkpoint.pt"), (0.0, "checkpoint_free.pt"))):
+        result = _neural_phase(replace(config, lambda_reg=weight), first, mesh, envmap, fit_photos, tonemap,
+                               prediction, basis, anchor_available, truth,
+                               _offset(progress, config.pbr_steps + k * config.steps, total, 1.0 + k), should_stop,
+                               checkpoint(name))  # fmt: skip
+        if not result.finished:
+            return result
+        results.append(result)
+        scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
+                                 config.seed + 1))  # fmt: skip
+    keep = 1 if scores[1] > scores[0] + config.select_margin_db else 0
+    chosen = results[keep]
+    if chosen.exposure is not None:  # back to one multiplier per photo of the capture
+        fitted = dict(zip(fit, chosen.exposure, strict=True))
+        chosen.exposure = [fitted.get(i, 1.0) for i in range(photos.count)]
+    chosen.selection = {"validation_psnr_anchored": scores[0], "validation_psnr_free": scores[1],
+                        "anchor_kept": float(keep == 0), "validation_photos": float(len(held_out))}
+    return chosen
