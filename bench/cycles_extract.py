@@ -121,7 +121,8 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
                        truth=None)  # fmt: skip
         seconds = time.perf_counter() - t0
         field, scene_mesh = result.params.field(), result.mesh or mesh
-        print(f"{capture.name} {name}: TTO {seconds:.0f} s, scoring", flush=True)
+        print(f"{capture.name} {name}: TTO {seconds:.0f} s, scoring"
+              + (f" (select_anchor: {result.selection})" if result.selection else ""), flush=True)
         twin = capture.with_name(capture.name + TWIN_SUFFIX)
         if (twin / "cycles.json").is_file():
             relit_clean = [clean_render_psnr(r, twin / "relight" / r.name, field, clean_spp, bounces, scene_mesh,
@@ -129,14 +130,19 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
             out[name] = {"tto_s": round(seconds, 1), "clean_spp": clean_spp, "relit_clean_maps_db": relit_clean,
                          "relit_clean_db": sum(relit_clean) / max(len(relit_clean), 1),
                          "photos_clean_db": clean_render_psnr(held_out, twin / "photos", field, clean_spp, bounces,
-                                                              scene_mesh, 0)}  # fmt: skip
+                                                              scene_mesh, 0), **selection_of(result)}  # fmt: skip
             continue
         relit_db = [_render_psnr(r, field, range(len(load_capture(r).frames)), spp, bounces, 0, scene_mesh)
                     for r in relit]  # fmt: skip
         out[name] = {"tto_s": round(seconds, 1), "relit_maps_db": relit_db,
                      "photos_db": _render_psnr(held_out, field, range(n_photos), spp, bounces, 0, scene_mesh),
-                     "relit_db": sum(relit_db) / max(len(relit_db), 1)}  # fmt: skip
+                     "relit_db": sum(relit_db) / max(len(relit_db), 1), **selection_of(result)}  # fmt: skip
     return out
+
+
+def selection_of(result: Any) -> dict[str, Any]:
+    """The TTO's select_anchor record (held-out PSNRs, which result was kept), when it made one."""
+    return {"selection": result.selection} if result.selection else {}
 
 
 def main() -> int:
