@@ -302,9 +302,9 @@ def test_reg_start_anchors_the_neural_phase_to_its_pbr_start(example, truth_pred
 
 def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(example, truth_prediction, tmp_path):
     """select_anchor: both phases fit all photos but the held-out ones (spread over the capture), the neural phase
-    anchored and free; the recorded held-out PSNRs are those of the two results (re-scored with the same seed they
-    come out the same), and the margin decides: a huge margin keeps the anchored result, a hugely negative one the
-    free one (no anchor term in its history). A PhotoSet subset keeps each photo's foreground pixels."""
+    anchored and free, each scored on the held-out photos; the margin decides (a huge one keeps the anchor, a
+    hugely negative one drops it), and the result is then bit for bit the plain TTO on every photo with the chosen
+    weight. A PhotoSet subset keeps each photo's foreground pixels."""
     from neumatex_core.tto import solve
     from neumatex_core.tto.pbr_start import photo_psnr, validation_frames
 
@@ -324,18 +324,24 @@ def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(e
             example.basis)  # fmt: skip
     steps: list[int] = []
     kept = solve(cfg, *args, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
-    assert steps == list(range(1, 13)) and kept.finished
-    assert {p.name for p in tmp_path.iterdir()} >= {"checkpoint_pbr.pt", "checkpoint.pt", "checkpoint_free.pt"}
+    assert steps == list(range(1, 21)) and kept.finished
+    assert {p.name for p in tmp_path.iterdir()} >= {"select_pbr.pt", "select_anchored.pt", "select_free.pt",
+                                                     "checkpoint_pbr.pt", "checkpoint.pt"}  # fmt: skip
     sel = kept.selection
     assert sel["anchor_kept"] == 1.0 and sel["validation_photos"] == 4.0
-    held = photos.subset(validation_frames(photos.count, 4))
-    again = photo_psnr(kept.params, kept.mesh, example.envmap, held, example.capture.tonemap, cfg, cfg.seed + 1)
-    assert again == pytest.approx(sel["validation_psnr_anchored"], abs=1e-6)
-    assert max(r["reg"] for r in kept.history if r["phase"] == 1.0) > 0
+    assert math.isfinite(sel["validation_psnr_anchored"]) and math.isfinite(sel["validation_psnr_free"])
+    plain = solve(replace(cfg, select_anchor=False), *args)
+    assert torch.equal(kept.params.tensor, plain.params.tensor)
     free = solve(replace(cfg, select_margin_db=-100.0), *args)
     assert free.selection["anchor_kept"] == 0.0
     assert free.selection["validation_psnr_free"] == pytest.approx(sel["validation_psnr_free"], abs=1e-6)
+    plain_free = solve(replace(cfg, select_anchor=False, lambda_reg=0.0), *args)
+    assert torch.equal(free.params.tensor, plain_free.params.tensor)
     assert all(r["reg"] == 0.0 for r in free.history if r["phase"] == 1.0)
+    # the clean score is deterministic in its seed (common random numbers for the two results)
+    held = photos.subset(validation_frames(photos.count, 4))
+    score = photo_psnr(plain.params, plain.mesh, example.envmap, held, example.capture.tonemap, cfg, 7)
+    assert score == photo_psnr(plain.params, plain.mesh, example.envmap, held, example.capture.tonemap, cfg, 7)
     with pytest.raises(ValueError, match="select_anchor"):
         replace(cfg, reg="none").check()
 
