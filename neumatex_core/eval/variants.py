@@ -11,8 +11,8 @@ basis v2 (docs/design-notes.md, item 25), with the material decoder frozen or fi
 ones the LMRM's decoder was trained to produce). Longer (issue 14): the same at 1000 neural steps (after 200 PBR
 steps) against the PBR baseline at 1400 steps (equal steps). Start anchor (issue 14): the neural TTO from the PBR
 solution held near its start (reg "start", weight 1, at two strengths), for relighting, and with the anchor
-kept or dropped by the error on held-out photos (`select_anchor`, docs/design-notes.md item 31). BSDF start (issue 14): that
-default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`, tto/pbr_start.py
+kept or dropped by the error on held-out photos (`select_anchor`, docs/design-notes.md item 32). BSDF start
+(issue 14): that default (anchor 0.1) with its start refined in BSDF space (`pbr_bsdf_fit_steps`, tto/pbr_start.py
 `refine_to_pbr_bsdf`), in the default basis and in bases v2 and v3 (v3 also without the refinement), and with the
 neural phase's learning rate at 1/4 and 1/10 of the preset's (`neural_lr_scale`). Averaging (issue 14): PBR and that
 default with the result the mean iterate of the last half of each phase (`average_tail`). Decorrelated (issue 14):

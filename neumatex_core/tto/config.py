@@ -122,7 +122,7 @@ class TTOConfig:
     # init "pbr", reg "start": the neural phase is run twice, with the anchor (lambda_reg) and without it, on all
     # photos but `validation_photos` (spread over the capture), and the result that reproduces those held-out photos
     # better is kept: the anchored one unless dropping the anchor gains more than select_margin_db of PSNR
-    # (tto/pbr_start.py `solve`; docs/design-notes.md item 31)
+    # (tto/pbr_start.py `solve`; docs/design-notes.md item 32)
     select_anchor: bool = False
     validation_photos: int = 4
     select_margin_db: float = 0.25
