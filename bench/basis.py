@@ -53,7 +53,7 @@ from neumatex_core.eval.metrics import psnr  # noqa: E402
 from neumatex_core.geometry.mesh import icosphere  # noqa: E402
 from neumatex_core.lighting.envmap import EnvironmentMap  # noqa: E402
 from neumatex_core.materials.base import cosine_pdf, cosine_sample  # noqa: E402
-from neumatex_core.materials.basis_training import EPS, _generator, draw_batch, log_target  # noqa: E402
+from neumatex_core.materials.basis_training import EPS, _generator, bsdf_loss, draw_batch, log_target  # noqa: E402
 from neumatex_core.materials.layered import LayeredMaterial  # noqa: E402
 from neumatex_core.materials.neural_basis import (  # noqa: E402
     NeuralBasis,
@@ -138,11 +138,7 @@ def fitted_latent(basis: NeuralBasis, params: torch.Tensor, steps: int, seed: in
     opt = torch.optim.Adam([u], lr=0.02)
     for step in range(steps):
         b = draw_batch(n, _generator(seed, "heldout", step), params.unsqueeze(0).expand(n, -1).contiguous())
-        z = torch.tanh(u).expand(n, -1)
-        f = torch.exp(basis.log_bsdf(z, b.wi, b.wo).clamp(max=12.0))
-        t, r = basis.transmission_reflectance(z, b.wo)
-        loss = (log_target(f, b.wi[:, 2]) - log_target(b.f_spec, b.wi[:, 2])).abs().mean() \
-            + 2 * ((t - b.transmission).abs().mean() + (r - b.reflected).abs().mean())
+        loss = bsdf_loss(basis, b, aux_weight=2.0, latent=torch.tanh(u).expand(n, -1))
         opt.zero_grad()
         loss.backward()
         opt.step()

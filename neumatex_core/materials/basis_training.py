@@ -134,9 +134,11 @@ def log_target(f: torch.Tensor, cos_i: torch.Tensor) -> torch.Tensor:
     return torch.log(f * cos_i.unsqueeze(-1) + EPS)
 
 
-def bsdf_loss(basis: NeuralBasis, b: Batch, aux_weight: float = 0.0, chroma_weight: float = 0.0) -> torch.Tensor:
-    """Log-L1 of f cos_i (+ aux_weight x `aux_terms`, + chroma_weight x the log-chromaticity L1)."""
-    latent = basis.encode(b.params)
+def bsdf_loss(basis: NeuralBasis, b: Batch, aux_weight: float = 0.0, chroma_weight: float = 0.0,
+              latent: torch.Tensor | None = None) -> torch.Tensor:
+    """Log-L1 of f cos_i (+ aux_weight x `aux_terms`, + chroma_weight x the log-chromaticity L1), at `latent`
+    [n, latent_dim] (default: basis.encode(b.params))."""
+    latent = basis.encode(b.params) if latent is None else latent
     f = torch.exp(basis.log_bsdf(latent, b.wi, b.wo).clamp(max=12.0))
     cos_i = b.wi[:, 2]
     log_f, log_t = log_target(f, cos_i), log_target(b.f_spec, cos_i)

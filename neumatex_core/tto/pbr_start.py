@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -131,9 +132,7 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
           progress: Progress | None = None, should_stop: Callable[[], bool] | None = None,
           checkpoint_dir: Path | None = None) -> TTOResult:
     """Run the TTO variant `config` (see the module docstring); stopped and resumed like `optimise`."""
-    def checkpoint(name: str) -> Path | None:
-        return None if checkpoint_dir is None else Path(checkpoint_dir) / name
-
+    checkpoint = partial(_checkpoint, checkpoint_dir)
     if config.init != "pbr":
         problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
         return optimise(problem, config, progress, should_stop, checkpoint("checkpoint.pt"))
@@ -147,6 +146,11 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
         return first
     return _neural_phase(config, first, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth,
                          _offset(progress, config.pbr_steps, total, 1.0), should_stop, checkpoint("checkpoint.pt"))
+
+
+def _checkpoint(checkpoint_dir: Path | None, name: str) -> Path | None:
+    """The checkpoint file `name` in `checkpoint_dir`, or None (no checkpoints) when there is no folder."""
+    return None if checkpoint_dir is None else Path(checkpoint_dir) / name
 
 
 def _offset(progress: Progress | None, offset: int, total: int, phase: float) -> Progress | None:
@@ -235,9 +239,7 @@ def _solve_selecting_anchor(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMa
     with that choice on every photo, so the result is exactly what the plain TTO with the chosen weight gives (the
     held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB). Its `selection`
     records both scores and the choice."""
-    def checkpoint(name: str) -> Path | None:
-        return None if checkpoint_dir is None else Path(checkpoint_dir) / name
-
+    checkpoint = partial(_checkpoint, checkpoint_dir)
     held_out = validation_frames(photos.count, config.validation_photos)
     fit = [i for i in range(photos.count) if i not in held_out]
     fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
