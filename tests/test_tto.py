@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from tto_fixtures import Example, gbuffer_mse, load_example, random_prediction
@@ -304,14 +305,23 @@ def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(e
     """select_anchor: both phases fit all photos but the held-out ones (spread over the capture), the neural phase
     anchored and free, each scored on the held-out photos; the margin decides (a huge one keeps the anchor, a
     hugely negative one drops it), and the result is then bit for bit the plain TTO on every photo with the chosen
-    weight. A PhotoSet subset keeps each photo's foreground pixels."""
+    weight. The held-out photos are spread over the capture but each has a fitted photo within 30 degrees, so the
+    preset views' bottom view (-Y, the only one that sees the underside) is never held out. A PhotoSet subset keeps
+    each photo's foreground pixels."""
     from neumatex_core.tto import solve
     from neumatex_core.tto.pbr_start import photo_psnr, validation_frames
 
     photos = example.photos
-    assert validation_frames(23, 4) == [2, 8, 14, 20] and validation_frames(5, 4) == [0, 1, 3, 4]
+    from neumatex_core.geometry.camera import preset_views
+
+    views, origin = preset_views(16), np.zeros(3)
+    assert validation_frames(views, 4, origin) == [2, 8, 14, 21]  # the even spread's 20 is -Y: its slot takes 21
+    assert 20 not in validation_frames(views, 11, origin)
+    assert validation_frames(views[:5], 4, origin) == [0, 2, 3]  # 5 orbit views 21 degrees apart: 2 stay to fit
     with pytest.raises(ValueError, match="only 4"):
-        validation_frames(4, 4)
+        validation_frames(views[:4], 4, origin)
+    with pytest.raises(ValueError, match="none of the capture's 6"):
+        validation_frames(views[17:], 2, origin)  # the canonical views are 90 degrees apart
     part = photos.subset([3, 1])
     for new, old in ((0, 3), (1, 1)):
         assert torch.equal(part.colour[part.pixel[:, 0] == new], photos.colour[photos.pixel[:, 0] == old])
@@ -339,7 +349,7 @@ def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(e
     assert torch.equal(free.params.tensor, plain_free.params.tensor)
     assert all(r["reg"] == 0.0 for r in free.history if r["phase"] == 1.0)
     # the clean score is deterministic in its seed (common random numbers for the two results)
-    held = photos.subset(validation_frames(photos.count, 4))
+    held = photos.subset(validation_frames(photos.cameras, 4, example.mesh.bounding_sphere()[0]))
     score = photo_psnr(plain.params, plain.mesh, example.envmap, held, example.capture.tonemap, cfg, 7)
     assert score == photo_psnr(plain.params, plain.mesh, example.envmap, held, example.capture.tonemap, cfg, 7)
     with pytest.raises(ValueError, match="select_anchor"):

@@ -120,8 +120,9 @@ class TTOConfig:
     exposure_lr: float = 0.05
     photo_loss: PhotoLossKind = "l2"
     # init "pbr", reg "start": the neural phase is run twice, with the anchor (lambda_reg) and without it, on all
-    # photos but `validation_photos` (spread over the capture), and the result that reproduces those held-out photos
-    # better is kept: the anchored one unless dropping the anchor gains more than select_margin_db of PSNR
+    # photos but `validation_photos` (spread over the capture, each with a fitted photo within 30 degrees), and the
+    # result that reproduces those held-out photos better is kept: the anchored one unless dropping the anchor
+    # gains more than select_margin_db of PSNR
     # (tto/pbr_start.py `solve`; docs/design-notes.md item 32)
     select_anchor: bool = False
     validation_photos: int = 4

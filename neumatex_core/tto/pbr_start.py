@@ -16,14 +16,16 @@ photos pull it towards the lobes PBR lacks.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRMPrediction
@@ -46,6 +48,7 @@ BSDF_FIT_BATCH = 4096  # surface points per step of `refine_to_pbr_bsdf`, one (w
 BSDF_FIT_LR = 0.02
 VALIDATION_SPP = 32  # path samples per held-out pixel when select_anchor scores the two results (two halves)
 VALIDATION_RAYS = 1 << 16  # rays per chunk of that render
+VALIDATION_NEIGHBOUR_DEG = 30.0  # a held-out photo needs a fitted one within this angle (the orbit's step is 21)
 
 
 def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor, latent: torch.Tensor, seed: int = 0,
@@ -197,13 +200,36 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
     return second
 
 
-def validation_frames(count: int, k: int) -> list[int]:
-    """k photo indices spread evenly over 0..count-1 (every (count / k)-th photo, from the middle of the first
-    stride), held out by `select_anchor`; ValueError when fewer than k + 1 photos would leave none to fit."""
+def validation_frames(cameras: Sequence[Camera], k: int, centre: np.ndarray,
+                      neighbour_deg: float = VALIDATION_NEIGHBOUR_DEG) -> list[int]:
+    """Up to k photo indices (sorted) held out by `select_anchor`: spread over the capture (every (count / k)-th
+    photo, from the middle of the first stride; a slot that fails moves on to the next index), each seen from
+    within neighbour_deg of it by a photo that stays in the fit (directions from `centre` [3], the object's
+    centre, to the cameras). So the held-out photos test how the fit reproduces surface it saw from nearby, not
+    how either result extrapolates to surface no fitted photo shows: the preset views' bottom view (-Y) sees the
+    underside alone, and holding it out made that extrapolation, where the anchor always wins, decide the choice
+    (docs/design-notes.md, item 32). ValueError when no photo has such a neighbour, or fewer than k + 1 photos."""
+    count = len(cameras)
     if count <= k:
         raise ValueError(f"TTO select_anchor holds out {k} photos to choose the anchor, but the capture has only "
                          f"{count}; lower validation_photos or turn select_anchor off")
-    return sorted({int((i + 0.5) * count / k) for i in range(k)})
+    dirs = np.stack([c.position - centre for c in cameras])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True).clip(1e-12)
+    near = dirs @ dirs.T >= math.cos(math.radians(neighbour_deg))  # [F, F] within the angle (itself included)
+    held: list[int] = []
+    for slot in range(k):
+        for step in range(count):
+            f = (int((slot + 0.5) * count / k) + step) % count
+            trial = held + [f]
+            fit = np.ones(count, dtype=bool)
+            fit[trial] = False
+            if f not in held and all(near[h, fit].any() for h in trial):
+                held = trial
+                break
+    if not held:
+        raise ValueError(f"TTO select_anchor needs held-out photos seen from within {neighbour_deg:g} degrees by "
+                         f"another photo, and none of the capture's {count} is; turn select_anchor off")
+    return sorted(held)
 
 
 def photo_psnr(params: Parametrisation, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
@@ -240,7 +266,7 @@ def _solve_selecting_anchor(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMa
     held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB). Its `selection`
     records both scores and the choice."""
     checkpoint = partial(_checkpoint, checkpoint_dir)
-    held_out = validation_frames(photos.count, config.validation_photos)
+    held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
     fit = [i for i in range(photos.count) if i not in held_out]
     fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
     total = 2 * config.pbr_steps + 3 * config.steps
