@@ -129,16 +129,21 @@ def sampling_variance(basis: NeuralBasis, n_materials: int, n_samples: int, seed
             "materials": k, "samples": n_samples}  # fmt: skip
 
 
-def fitted_latent(basis: NeuralBasis, params: torch.Tensor, steps: int, seed: int, n: int = 8192) -> torch.Tensor:
+def fitted_latent(basis: NeuralBasis, params: torch.Tensor, steps: int, seed: int, n: int = 8192,
+                  render_weight: float = 0.0, group: int = 16) -> torch.Tensor:
     """The latent [latent_dim] in (-1, 1) whose decoded BSDF, T and R best match the analytic material `params`
-    [22]: `steps` Adam steps on atanh(latent) from basis.encode(params), the training loss on n direction pairs."""
+    [22]: `steps` Adam steps on atanh(latent) from basis.encode(params), the training loss on n direction pairs
+    (with render_weight > 0 plus that weight times the render-unit term over groups of `group`)."""
     with torch.no_grad():
         start = basis.encode(params.unsqueeze(0))[0]
     u = torch.atanh(start.clamp(-0.999, 0.999)).requires_grad_(True)
     opt = torch.optim.Adam([u], lr=0.02)
     for step in range(steps):
-        b = draw_batch(n, _generator(seed, "heldout", step), params.unsqueeze(0).expand(n, -1).contiguous())
-        loss = bsdf_loss(basis, b, aux_weight=2.0, latent=torch.tanh(u).expand(n, -1))
+        g = group if render_weight > 0 else 1
+        b = draw_batch(n, _generator(seed, "heldout", step), params.unsqueeze(0).expand(n // g, -1).contiguous(),
+                       group=g)
+        loss = bsdf_loss(basis, b, aux_weight=2.0, latent=torch.tanh(u).expand(n, -1), render_weight=render_weight,
+                         group=g)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -157,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--envmaps", type=str, default="", help="comma-separated maps (default: all shared)")
     parser.add_argument("--fit-latent", type=int, default=0, help="spheres with a latent fitted by this many steps "
                         "instead of the encoder's (0: the encoder's)")
+    parser.add_argument("--fit-render-weight", type=float, default=0.0, help="with --fit-latent: weight of the "
+                        "render-unit term (basis_training.render_terms) in the fit's objective")
     parser.add_argument("--families", type=str, default="", help="comma-separated sphere families (default: all; "
                         "the others' spheres are drawn and skipped, so each family's spheres stay the same)")
     parser.add_argument("--resolution", type=int, default=40)
@@ -201,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         colors = sample_base_color(family, args.per_family, gm)
         if family not in sphere_families:
             continue
-        latents = [fitted_latent(basis, params[i], args.fit_latent, BENCH_SEED + 5) if args.fit_latent else None
+        latents = [fitted_latent(basis, params[i], args.fit_latent, BENCH_SEED + 5,
+                                 render_weight=args.fit_render_weight) if args.fit_latent else None
                    for i in range(args.per_family)]  # fmt: skip
         raw, clean, clean_se, floor = [], [], [], []
         for path in map_paths:

@@ -333,3 +333,46 @@ def test_every_shipped_basis_loads_and_matches_its_record() -> None:
         wi = torch.nn.functional.normalize(torch.tensor([[0.3, 0.1, 0.9]]), dim=-1)
         f = b.bsdf(torch.zeros(1, b.arch.latent_dim), wi, wi)
         assert torch.isfinite(f).all() and (f >= 0).all()
+
+
+def test_render_term_measures_the_albedo_a_render_integrates(tmp_path: Path) -> None:
+    """`render_terms` (design note 33): groups share a parameter set and wo; a group's importance-weighted mean of
+    f cos / pdf estimates the directional albedo (checked against plain uniform sampling, within 4 SE); the term is
+    zero for the analytic f and sees a hue shift in f and in T; a fine-tune with it records the term's weight and
+    moves the decoder."""
+    from safetensors.torch import load_file
+
+    from neumatex_core.materials.basis_training import _generator, draw_batch, render_terms, uniform_hemisphere
+    from neumatex_core.materials.layered import LayeredMaterial
+
+    g = torch.Generator().manual_seed(3)
+    params = sample_parameters("coated", 1, g)  # one coated material for every group
+    n, group = 1 << 16, 16
+    wi, wo = uniform_hemisphere(n, g), uniform_hemisphere(n, g)
+    f, _, _ = LayeredMaterial(params.expand(n, -1), torch.zeros(n, 3)).components(wi, wo)
+    plain = f * wi[:, 2:] * 2 * math.pi  # uniform wi and wo: the hemispherical mean of the directional albedo
+    near_mirror = []
+    for mirror_share in (0.0, 0.25):  # the mirror cone's directions are weighted by the mixture pdf too
+        b = draw_batch(n, _generator(0, "bsdf", 0), params.expand(n // group, -1).contiguous(), group=group,
+                       mirror_share=mirror_share)
+        assert torch.equal(b.wo.view(-1, group, 3)[:, :1].expand(-1, group, -1), b.wo.view(-1, group, 3))
+        assert render_terms(b.f_spec, b.transmission, b, group) == 0
+        w = (b.wi[:, 2] / b.pdf_analytic).unsqueeze(-1)
+        albedo = (b.f_spec * w).view(-1, group, 3).mean(1)  # [groups, 3], wo uniform over the groups
+        se = (albedo.var(0) / albedo.shape[0] + plain.var(0) / n).sqrt()
+        assert ((albedo.mean(0) - plain.mean(0)).abs() < 4 * se).all(), (mirror_share, albedo.mean(0), se)
+        cos_mirror = (b.wi * b.wo * torch.tensor([-1.0, -1.0, 1.0])).sum(-1)  # wi against wo's mirror direction
+        near_mirror.append(float((cos_mirror > math.cos(math.radians(3))).float().mean()))
+    assert near_mirror[1] - near_mirror[0] > 0.15, near_mirror  # most of the 1/4 lands within 3 degrees
+    redder = b.f_spec * torch.tensor([1.2, 1.0, 1.0])
+    assert render_terms(redder, b.transmission, b, group) > 0.02
+    assert render_terms(redder, b.transmission, b, group) > render_terms(b.f_spec * 1.01, b.transmission, b, group)
+    bluer_base = (b.transmission * torch.tensor([0.9, 1.0, 1.1])).clamp(max=1)  # the coat's tint on T
+    assert render_terms(b.f_spec, bluer_base, b, group) > 0.01
+    cfg = TrainBasisConfig(out=str(tmp_path / "render"), init=str(DEFAULT_WEIGHTS), render_weight=1.0, render_group=8,
+                           **TINY)  # type: ignore[arg-type]
+    start = NeuralBasis()
+    start.load_state_dict(load_file(str(DEFAULT_WEIGHTS)))
+    tuned, metrics = train_basis(cfg, torch.device("cpu"))
+    assert metrics["config"]["render_weight"] == 1.0  # type: ignore[index]
+    assert not torch.equal(tuned.decoder[0].weight, start.decoder[0].weight)

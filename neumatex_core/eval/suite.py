@@ -66,6 +66,8 @@ ROW_NAMES = {
     "pbr_start_anchor_01_bsdf_v2": "the same in basis v2",
     "pbr_start_anchor_01_v3": "neural from the PBR solution, anchored (lambda 0.1), basis v3",
     "pbr_start_anchor_01_bsdf_v3": "neural from the PBR solution refined in BSDF space, anchored, basis v3",
+    "pbr_start_anchor_01_v4": "neural from the PBR solution, anchored (lambda 0.1), basis v4",
+    "pbr_start_v4": "neural from the PBR solution, no anchor, basis v4",
     "pbr_start_bsdf_lr05": "neural from the PBR solution refined in BSDF space, anchored, neural lr x 1/4",
     "pbr_start_bsdf_lr02": "neural from the PBR solution refined in BSDF space, anchored, neural lr x 1/10",
     "pbr_avg": "PBR baseline, mean iterate of the last half",

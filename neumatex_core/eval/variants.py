@@ -31,6 +31,7 @@ from neumatex_core.tto.config import TTOConfig
 
 BASIS_V2 = "nmx-basis-v2-4af9689561fa"  # materials/data/bases/v2.json
 BASIS_V3 = "nmx-basis-v3-5e859f599cbd"  # materials/data/bases/v3.json (docs/design-notes.md, item 30)
+BASIS_V4 = "nmx-basis-v4-2b82d9690606"  # materials/data/bases/v4.json (docs/design-notes.md, item 33)
 OURS: dict[str, Any] = {"field": "triplane", "init": "lmrm", "reg": "uncertainty", "material": "neural"}
 
 VARIANTS: dict[str, dict[str, Any]] = {
@@ -61,6 +62,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_anchor_01_v3": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "basis": BASIS_V3},
     "pbr_start_anchor_01_bsdf_v3": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                     "pbr_bsdf_fit_steps": 300, "basis": BASIS_V3},
+    "pbr_start_anchor_01_v4": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "basis": BASIS_V4},
+    "pbr_start_v4": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V4},
     "pbr_start_bsdf_lr05": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300,
                             "neural_lr_scale": 0.25},
     "pbr_start_bsdf_lr02": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300,
@@ -92,7 +95,7 @@ TABLES: dict[str, list[str]] = {
                      "pbr_start_anchor_select"],
     "bsdf_start": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_bsdf", "pbr_start_anchor_01_bsdf_v2",
                    "pbr_start_anchor_01_v3", "pbr_start_anchor_01_bsdf_v3", "pbr_start_bsdf_lr05",
-                   "pbr_start_bsdf_lr02"],
+                   "pbr_start_bsdf_lr02", "pbr_start_anchor_01_v4", "pbr_start_v4"],
     "averaging": ["pbr", "pbr_avg", "pbr_start_anchor_01", "pbr_start_anchor_01_avg"],
     "spp32": ["pbr", "pbr_spp32", "pbr_start_anchor_01", "pbr_start_anchor_01_spp32"],
     "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",

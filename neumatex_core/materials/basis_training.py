@@ -9,7 +9,10 @@ Three stages, each drawing fresh samples every step (the analytic material is ch
    aux network retrained on it stayed at T MAE 0.10 on clear coats, the largest error of coated spheres);
    `chroma_weight` adds the L1 of the log-chromaticity (log f_c minus its channel mean), which pushes the
    specular colour into the latent (v1's latent let a conductor's F0 hue be decoded only to 0.07 MAE: gold came
-   out grey); `init` starts from a trained basis instead of random weights.
+   out grey); `init` starts from a trained basis instead of random weights. `render_weight` > 0 adds `render_terms`,
+   the error in the units a render integrates (docs/design-notes.md item 33): the batch comes in groups of
+   `render_group` direction pairs sharing one parameter set and one wo, so each group estimates its directional
+   albedo.
 2. `aux`: the auxiliary network (T_neu, R_neu) against the analytic T(wo) and R(wo); encoder and decoder frozen.
 3. `sampler`: the sampling network, by maximum likelihood of directions distributed like lum(f_neu) cos_i (the
    frozen decoder): wi drawn from the analytic material's sampler with weights lum(f_neu cos_i) / pdf, loss the
@@ -17,7 +20,8 @@ Three stages, each drawing fresh samples every step (the analytic material is ch
 
 Samples: parameters from the family prior (families equally likely) or uniform in [0, 1]^22 (`uniform_share`,
 1/4 in v1, for coverage of the latent space that optimisation may wander into); wo uniform on the hemisphere; wi
-half from the analytic material's importance sampler (the peaks), half uniform (the tails).
+half from the analytic material's importance sampler (the peaks), half uniform (the tails); with `mirror_share` > 0
+that share is redrawn in a narrow cone around wo's mirror direction.
 
 Deterministic: step k of a stage draws from a generator seeded by (seed, stage, k), so an interrupted run that is
 resumed from its checkpoint ends with the same weights as an uninterrupted one (same device and thread count).
@@ -36,9 +40,11 @@ import torch
 from neumatex_core.config import option
 from neumatex_core.materials.base import luminance
 from neumatex_core.materials.layered import INDEX, N_PARAMS, LayeredMaterial
+from neumatex_core.materials.microfacet import ggx_pdf_visible, ggx_sample_visible
 from neumatex_core.materials.neural_basis import LATENT_DIM, BasisArchitecture, NeuralBasis
 from neumatex_core.materials.prior import FAMILIES, ROUGHNESS_MIN, sample_parameters
 
+MIRROR_ALPHA = 0.02  # GGX width of `draw_batch`'s mirror-cone directions (the prior's sharpest lobe has 0.01)
 EPS = 1e-3  # f cos below this (1/sr) is invisible next to any diffuse base; log-space loss floor
 STAGES = ("bsdf", "aux", "sampler")
 STAGE_SEED = {"bsdf": 1, "aux": 2, "sampler": 3, "heldout": 4}
@@ -61,6 +67,12 @@ class TrainBasisConfig:
     uniform_share: float = option(0.25, "share of parameter sets drawn uniformly instead of from the family prior")
     aux_weight: float = option(0.0, "weight of the T/R loss in the bsdf stage (0: the aux network trains alone)")
     chroma_weight: float = option(0.0, "weight of the log-chromaticity L1 in the bsdf stage")
+    render_weight: float = option(0.0, "weight of the render-unit term (importance-weighted linear error and "
+                                  "directional-albedo error, relative to the albedo) in the bsdf stage")
+    render_group: int = option(16, "direction pairs per (parameter set, wo) group when render_weight > 0")
+    render_base: float = option(0.5, "grey base colour through which T enters the render term (0: f_spec alone)")
+    mirror_share: float = option(0.0, "share of training directions drawn in a narrow GGX cone (alpha MIRROR_ALPHA) "
+                                 "around wo's mirror direction, where a spurious spike would otherwise go unseen")
     init: str = option("", "start from these basis weights (.safetensors) instead of random ones (a smaller latent "
                        "is widened: `grow_latent`)")
     latent_dim: int = option(LATENT_DIM, "latent size (the paper's 6; other sizes are for experiments: the rest of "
@@ -107,15 +119,23 @@ class Batch:
 
 
 def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, uniform_share: float = 0.25,
-               device: torch.device | None = None) -> Batch:
+               device: torch.device | None = None, group: int = 1, mirror_share: float = 0.0) -> Batch:
     """Training samples on `device` (default CPU): see the module docstring.
 
-    The random numbers come from `g` on the CPU in a fixed order, so a batch depends on (g, n) and not on the
-    device; the analytic material is evaluated on `device` (on a GPU that is most of a step's work).
-    params: [n, 22] to use instead of `draw_parameters` (e.g. one family's, for per-family metrics)."""
+    The random numbers come from `g` on the CPU in a fixed order, so a batch depends on (g, n, group) and not on
+    the device; the analytic material is evaluated on `device` (on a GPU that is most of a step's work).
+    params: [n // group, 22] to use instead of `draw_parameters` (e.g. one family's, for per-family metrics).
+    group: consecutive runs of `group` samples share one parameter set and one wo (n must be a multiple).
+    mirror_share: that share of wi is redrawn from a GGX lobe of width MIRROR_ALPHA around wo's mirror direction
+    (the pdf includes it); its random numbers come last, so a batch without it is unchanged."""
+    if n % group:
+        raise ValueError(f"batch {n} is not a multiple of the group size {group}")
     dev = torch.device("cpu") if device is None else device
-    params = (draw_parameters(n, g, uniform_share) if params is None else params).to(dev)
-    wo = uniform_hemisphere(n, g).to(dev)
+    sets = n // group
+    params = (draw_parameters(sets, g, uniform_share) if params is None else params).to(dev)
+    wo = uniform_hemisphere(sets, g).to(dev)
+    if group > 1:
+        params, wo = params.repeat_interleave(group, 0), wo.repeat_interleave(group, 0)
     u_lobe, u_dir = torch.rand(n, generator=g).to(dev), torch.rand(n, 2, generator=g).to(dev)
     wi_uni = uniform_hemisphere(n, g).to(dev)
     use_imp = (torch.rand(n, generator=g) < 0.5).to(dev)
@@ -125,6 +145,13 @@ def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, u
     ok = wi[:, 2] > 1e-4
     wi = torch.where(ok.unsqueeze(-1), wi, wi_uni)
     pdf = 0.5 * material.pdf(wi, wo) + 0.5 / (2 * math.pi)
+    if mirror_share > 0:
+        alpha = torch.full((n,), MIRROR_ALPHA, device=dev)
+        u_m, use_m = torch.rand(n, 2, generator=g).to(dev), (torch.rand(n, generator=g) < mirror_share).to(dev)
+        wi_m = ggx_sample_visible(wo, alpha, u_m)
+        wi = torch.where((use_m & (wi_m[:, 2] > 1e-4)).unsqueeze(-1), wi_m, wi)
+        pdf = (1 - mirror_share) * (0.5 * material.pdf(wi, wo) + 0.5 / (2 * math.pi))
+        pdf = pdf + mirror_share * ggx_pdf_visible(wi, wo, alpha)
     with torch.no_grad():
         f_spec, transmission, reflected = material.components(wi, wo)
     return Batch(params, wi, wo, pdf, f_spec, transmission, reflected)
@@ -135,9 +162,10 @@ def log_target(f: torch.Tensor, cos_i: torch.Tensor) -> torch.Tensor:
 
 
 def bsdf_loss(basis: NeuralBasis, b: Batch, aux_weight: float = 0.0, chroma_weight: float = 0.0,
-              latent: torch.Tensor | None = None) -> torch.Tensor:
-    """Log-L1 of f cos_i (+ aux_weight x `aux_terms`, + chroma_weight x the log-chromaticity L1), at `latent`
-    [n, latent_dim] (default: basis.encode(b.params))."""
+              latent: torch.Tensor | None = None, render_weight: float = 0.0, group: int = 1,
+              render_base: float = 0.5) -> torch.Tensor:
+    """Log-L1 of f cos_i (+ aux_weight x `aux_terms`, + chroma_weight x the log-chromaticity L1, + render_weight x
+    `render_terms` over groups of `group`), at `latent` [n, latent_dim] (default: basis.encode(b.params))."""
     latent = basis.encode(b.params) if latent is None else latent
     f = torch.exp(basis.log_bsdf(latent, b.wi, b.wo).clamp(max=12.0))
     cos_i = b.wi[:, 2]
@@ -148,7 +176,32 @@ def bsdf_loss(basis: NeuralBasis, b: Batch, aux_weight: float = 0.0, chroma_weig
         loss = loss + chroma_weight * chroma.abs().mean()
     if aux_weight > 0:
         loss = loss + aux_weight * aux_terms(basis, latent, b)
+    if render_weight > 0:
+        t, _ = basis.transmission_reflectance(latent, b.wo)
+        loss = loss + render_weight * render_terms(f, t, b, group, render_base)
     return loss
+
+
+ALBEDO_FLOOR = 0.05  # the render terms are relative to the group's albedo luminance plus this
+
+
+def render_terms(f: torch.Tensor, transmission: torch.Tensor, b: Batch, group: int, base: float = 0.5) -> torch.Tensor:
+    """The error a render integrates, per group of `group` samples sharing a parameter set and wo (`draw_batch`).
+
+    f: [n, 3] the decoded BSDF (1/sr) at the batch's directions; transmission: [n, 3] the decoded T(wo). With
+    w = cos_i / pdf the importance weight of the batch's own wi (half analytic-sampled, half uniform: w is
+    bounded), mean_k(f w) is the group's directional albedo of f_spec (linear RGB) and T(wo) rho_d that of the
+    base (eq. 1), here under a grey base rho_d = `base` (0: f_spec alone): the light a white sky reflects.
+    Returns the mean over groups and channels of (mean_k |f - f_spec| w + |albedo_neu - albedo| + rho_d |T_neu -
+    T|) / (lum(albedo) + ALBEDO_FLOOR): the lobe's shape in linear units (where the log-L1 weighs a dim tail like
+    the peak), the colour and level of the whole (a hue lost in a lobe or in the coat's T, design note 30),
+    relative to the albedo, so that a dark material's error counts as a tonemapped render sees it."""
+    w = (b.wi[:, 2] / b.pdf_analytic.clamp_min(1e-8)).unsqueeze(-1)
+    d = ((f - b.f_spec) * w).view(-1, group, 3)
+    d_base = base * (transmission - b.transmission).view(-1, group, 3).mean(1)  # T(wo): one wo per group
+    albedo = (b.f_spec * w).view(-1, group, 3).mean(1) + base * b.transmission.view(-1, group, 3).mean(1)
+    scale = (luminance(albedo) + ALBEDO_FLOOR).unsqueeze(-1)
+    return ((d.abs().mean(1) + (d.mean(1) + d_base).abs() + d_base.abs()) / scale).mean()
 
 
 def aux_terms(basis: NeuralBasis, latent: torch.Tensor, b: Batch) -> torch.Tensor:
@@ -165,7 +218,6 @@ def aux_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
 
 def sampler_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
     from neumatex_core.materials.base import cosine_pdf
-    from neumatex_core.materials.microfacet import ggx_pdf_visible
 
     with torch.no_grad():
         latent = basis.encode(b.params)
@@ -180,8 +232,13 @@ def sampler_loss(basis: NeuralBasis, b: Batch) -> torch.Tensor:
 
 def stage_loss(cfg: TrainBasisConfig, stage: str, basis: NeuralBasis, b: Batch) -> torch.Tensor:
     if stage == "bsdf":
-        return bsdf_loss(basis, b, cfg.aux_weight, cfg.chroma_weight)
+        return bsdf_loss(basis, b, cfg.aux_weight, cfg.chroma_weight, render_weight=cfg.render_weight,
+                         group=_group(cfg), render_base=cfg.render_base)
     return aux_loss(basis, b) if stage == "aux" else sampler_loss(basis, b)
+
+
+def _group(cfg: TrainBasisConfig) -> int:
+    return cfg.render_group if cfg.render_weight > 0 else 1
 
 
 def stage_parameters(basis: NeuralBasis, stage: str, aux_weight: float = 0.0) -> list[torch.nn.Parameter]:
@@ -224,7 +281,9 @@ def heldout_metrics(basis: NeuralBasis, n: int, seed: int, device: torch.device)
 def training_step(cfg: TrainBasisConfig, stage: str, step: int, basis: NeuralBasis, opt: torch.optim.Optimizer,
                   lr: float, device: torch.device) -> torch.Tensor:
     """One optimiser step of `stage` on step `step`'s batch at learning rate `lr`; returns the loss (with grad)."""
-    b = draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share, device=device)
+    b = draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share, device=device,
+                   group=_group(cfg) if stage == "bsdf" else 1,
+                   mirror_share=cfg.mirror_share if stage == "bsdf" else 0.0)
     loss = stage_loss(cfg, stage, basis, b)
     opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -330,6 +389,7 @@ def _schedule(cfg: TrainBasisConfig) -> dict[str, object]:
     keys = ["seed", "batch", "steps_bsdf", "steps_aux", "steps_sampler", "lr"]
     v1 = TrainBasisConfig()
     # options added after v1 enter the schedule only when set, so v1's record (and checkpoints) keep their meaning
-    later = ("uniform_share", "aux_weight", "chroma_weight", "init", "latent_dim")
+    later = ("uniform_share", "aux_weight", "chroma_weight", "init", "latent_dim", "render_weight", "render_group",
+             "render_base", "mirror_share")
     keys += [k for k in later if d[k] != getattr(v1, k)]
     return {k: d[k] for k in keys}
