@@ -58,6 +58,16 @@ def in_tto(c: Any, job_id: str, at_least: float) -> bool:
     return j["state"] == "running" and j["stage"] == "tto" and j["stage_fraction"] >= at_least
 
 
+def wait_in_tto(c: Any, job_id: str, at_least: float, what: str) -> None:
+    """Wait (180 s) until the job runs its TTO at `at_least` of its steps; a timeout names where the job is."""
+    try:
+        wait_for(lambda: in_tto(c, job_id, at_least), 180, what, every=0.1)
+    except AssertionError as exc:
+        j = job(c, job_id)
+        where = {k: j.get(k) for k in ("state", "stage", "stage_fraction", "progress", "attempt", "worker", "error")}
+        raise AssertionError(f"{exc}; the job now: {where}, timings {j.get('timings')}") from None
+
+
 def events_of(service: Service, job_id: str) -> list[dict[str, Any]]:
     return sse_events(service, job_id, timeout=60)
 
@@ -78,7 +88,7 @@ def test_kill9_worker_during_tto_another_worker_finishes(service: Service) -> No
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
         j = submit(c, cap["id"], tto={"steps": 40, "checkpoint_every": 4})
-        wait_for(lambda: in_tto(c, j["id"], 10 / 40), 180, "TTO step 10", every=0.1)
+        wait_in_tto(c, j["id"], 10 / 40, "TTO step 10")
         before = done_times(service, j["id"])
         assert set(before) == {"validate", "prepare_views", "lmrm"}
         first.kill9()
@@ -120,7 +130,7 @@ def test_redis_restarted_mid_job_no_job_lost(service: Service) -> None:
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
         a = submit(c, cap["id"], tto={"steps": 24})
-        wait_for(lambda: in_tto(c, a["id"], 3 / 24), 180, "TTO of job A", every=0.1)
+        wait_in_tto(c, a["id"], 3 / 24, "TTO of job A")
         service.redis.stop()
         b = submit(c, cap["id"])  # accepted while the broker is down: the reaper sends it later
         assert b["state"] == "queued"
@@ -162,8 +172,9 @@ def test_api_restarted_mid_job_job_finishes(service: Service) -> None:
     worker = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        j = submit(c, cap["id"], tto={"steps": 20})
-        wait_for(lambda: in_tto(c, j["id"], 2 / 20), 180, "TTO", every=0.1)
+        # 60 steps (about 3 s here): 20 left a TTO window of about 1 s that the poll missed now and then
+        j = submit(c, cap["id"], tto={"steps": 60})
+        wait_in_tto(c, j["id"], 2 / 60, "TTO")
     service.restart_api()
     with service.client() as c:
         done = wait_state(c, j["id"], ("completed", "failed"), 240, service)
@@ -179,7 +190,7 @@ def test_cancel_during_tto_stops_within_seconds_and_retry_resumes(service: Servi
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
         j = submit(c, cap["id"], tto={"steps": 30, "checkpoint_every": 2})
-        wait_for(lambda: in_tto(c, j["id"], 5 / 30), 180, "TTO step 5", every=0.1)
+        wait_in_tto(c, j["id"], 5 / 30, "TTO step 5")
         t0 = time.monotonic()
         r = c.post(f"/v1/jobs/{j['id']}/cancel")
         assert r.status_code == 200 and r.json()["state"] == "canceled"
