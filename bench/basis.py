@@ -138,8 +138,8 @@ def fitted_latent(basis: NeuralBasis, params: torch.Tensor, steps: int, seed: in
         start = basis.encode(params.unsqueeze(0))[0]
     u = torch.atanh(start.clamp(-0.999, 0.999)).requires_grad_(True)
     opt = torch.optim.Adam([u], lr=0.02)
+    g = group if render_weight > 0 else 1
     for step in range(steps):
-        g = group if render_weight > 0 else 1
         b = draw_batch(n, _generator(seed, "heldout", step), params.unsqueeze(0).expand(n // g, -1).contiguous(),
                        group=g)
         loss = bsdf_loss(basis, b, aux_weight=2.0, latent=torch.tanh(u).expand(n, -1), render_weight=render_weight,

@@ -144,14 +144,14 @@ def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, u
     wi = torch.where(use_imp.unsqueeze(-1), wi_imp, wi_uni)
     ok = wi[:, 2] > 1e-4
     wi = torch.where(ok.unsqueeze(-1), wi, wi_uni)
-    pdf = 0.5 * material.pdf(wi, wo) + 0.5 / (2 * math.pi)
     if mirror_share > 0:
         alpha = torch.full((n,), MIRROR_ALPHA, device=dev)
         u_m, use_m = torch.rand(n, 2, generator=g).to(dev), (torch.rand(n, generator=g) < mirror_share).to(dev)
         wi_m = ggx_sample_visible(wo, alpha, u_m)
         wi = torch.where((use_m & (wi_m[:, 2] > 1e-4)).unsqueeze(-1), wi_m, wi)
-        pdf = (1 - mirror_share) * (0.5 * material.pdf(wi, wo) + 0.5 / (2 * math.pi))
-        pdf = pdf + mirror_share * ggx_pdf_visible(wi, wo, alpha)
+    pdf = 0.5 * material.pdf(wi, wo) + 0.5 / (2 * math.pi)
+    if mirror_share > 0:
+        pdf = (1 - mirror_share) * pdf + mirror_share * ggx_pdf_visible(wi, wo, alpha)
     with torch.no_grad():
         f_spec, transmission, reflected = material.components(wi, wo)
     return Batch(params, wi, wo, pdf, f_spec, transmission, reflected)
