@@ -9,15 +9,16 @@
 Per capture (23 preset views, 8 held-out photos at random poses in photos/, held-out maps in relight/<j>/; Cycles,
 256 spp): the pipeline's validate / prepare_views / lmrm stages, then two TTOs on the preset views through
 `tto.solve`, as `neumatex eval` runs them: the PBR baseline (material "pbr", 400 steps from the LMRM's PBR head) and
-the extraction's default (`ExtractConfig.preset("cpu")`: PBR TTO, then the neural TTO from its solution anchored
-to it). Each is rendered at --spp with our path tracer and scored (PSNR after the capture's tonemap, covered pixels)
-on the held-out photos (capture lighting, unseen poses) and on every relit view (unseen lighting). Prints neural -
-PBR per capture, then per Principled preset the mean over captures with its standard error, and writes a JSON line
-to bench/results/cycles_extract.jsonl. The reference is Cycles itself at 256 spp, so both rows carry the same Cycles
-noise (it adds the same MSE to both, so the dB difference understates the clean one); the difference is the figure.
-Each capture's scores are kept in <work>/<capture name>/scores.json, so an interrupted run resumes (`--again`
-recomputes them). `--variants pbr,neural,ours_pbr_start_no_reg` adds a `neumatex eval` variant (here the default
-without its anchor to the PBR start; only the missing variants are run), each compared with the PBR baseline.
+the extraction's default (`ExtractConfig.preset("cpu")`: PBR TTO, then the neural TTO from its solution, with the
+consistency term since 2026-11-27 and anchored to it before). Each is rendered at --spp with our path tracer and
+scored (PSNR after the capture's tonemap, covered pixels) on the held-out photos (capture lighting, unseen poses)
+and on every relit view (unseen lighting). Prints neural - PBR per capture, then per Principled preset the mean over
+captures with its standard error, and writes a JSON line to bench/results/cycles_extract.jsonl. The reference is
+Cycles itself at 256 spp, so both rows carry the same Cycles noise (it adds the same MSE to both, so the dB
+difference understates the clean one); the difference is the figure. Each capture's scores are kept in
+<work>/<capture name>/scores.json, so an interrupted run resumes (`--again` recomputes them). `--variants
+pbr,neural,ours_pbr_start_no_reg` adds a `neumatex eval` variant (here the neural TTO from the PBR start without a
+regulariser; only the missing variants are run), each compared with the PBR baseline.
 
 Clean scores: when a twin capture <capture>.seed1 exists (the same views rendered by Cycles with another --seed and
 the same --pose-seed, as bench/cycles_matrix.sh writes), each render is scored noise-corrected
@@ -108,6 +109,8 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
     mesh = cap.load_mesh()
     photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
                       [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
+    if "recipe" in out and TTOConfig.from_dict(out["recipe"]) != config.tto_config():
+        out.pop("neural", None)  # kept from an extraction default that has changed since: "neural" is run again
     variants = {name: variant_tto(name, config.tto_config()) for name in names if name not in out}
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)

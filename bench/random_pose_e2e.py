@@ -1,9 +1,9 @@
 """End to end from random-pose photographs against the true preset views (issue 18): the same extraction (the cpu
-preset's default TTO, eval variant `pbr_start_anchor_01`, and the PBR baseline) run twice per object, once on the
-object itself (its 23 preset views) and once on its random-pose capture (`<object>/random_pose`, 100 JPEG photos
-with per-photo exposure and lens distortion: `neumatex synth-random-pose`), both scored the same way on the object
-(`eval/harness.evaluate_variant` with `capture_dir`): PathTrace and Relight clean against the object's references,
-BaseColor and Latents against its ground truth.
+preset with eval variant `pbr_start_anchor_01`, the extraction's default until 2026-11-27, and the PBR baseline) run
+twice per object, once on the object itself (its 23 preset views) and once on its random-pose capture
+(`<object>/random_pose`, 100 JPEG photos with per-photo exposure and lens distortion: `neumatex synth-random-pose`),
+both scored the same way on the object (`eval/harness.evaluate_variant` with `capture_dir`): PathTrace and Relight
+clean against the object's references, BaseColor and Latents against its ground truth.
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/random_pose_e2e.py [--data data/benchmark-test]
         [--objects first:2] [--variants pbr_start_anchor_01,pbr] [--workers 2]
@@ -90,10 +90,13 @@ def summarise(results: Path, variant: str) -> int:
     import json
 
     latest: dict[str, dict[str, Any]] = {}
+    baseline: dict[str, dict[str, Any]] = {}  # the PBR baseline's latest row per object, where one was run
     for line in results.read_text().splitlines():
         for row in json.loads(line).get("rows", []):
             if f"random_pose/{variant}" in row and f"preset/{variant}" in row:
                 latest[row["object"]] = row
+            if variant != "pbr" and "preset/pbr" in row and "random_pose/pbr" in row:
+                baseline[row["object"]] = row
     if not latest:
         print(f"{results}: no rows for variant {variant!r}")
         return 1
@@ -119,6 +122,22 @@ def summarise(results: Path, variant: str) -> int:
         se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
         print(f"| {names[m]} | {np.mean([a for a, _ in pairs]):.2f} | {np.mean([b for _, b in pairs]):.2f} | "
               f"{np.mean(d):+.2f} +- {se:.2f} | {d[np.argmax(np.abs(d))]:+.2f} |")
+    paired = sorted(set(latest) & set(baseline))
+    if paired:
+        print(f"\n{variant} / the PBR baseline and the paired difference over the {len(paired)} objects that have "
+              "both (dB, +- s.e.)")
+        print("| PSNR, dB | from preset views: ours / PBR: ours - PBR | from random-pose photos |")
+        print("|---|---|---|")
+        for m in METRICS:
+            cells = []
+            for source in SOURCES:
+                ab = np.array([(latest[o][f"{source}/{variant}"].get(m, np.nan),
+                                baseline[o][f"{source}/pbr"].get(m, np.nan)) for o in paired])  # fmt: skip
+                ab = ab[np.isfinite(ab).all(axis=1)]
+                d = ab[:, 0] - ab[:, 1]
+                cells.append(f"{ab[:, 0].mean():.2f} / {ab[:, 1].mean():.2f}: {np.mean(d):+.2f} +- "
+                             f"{np.std(d, ddof=1) / np.sqrt(len(d)):.2f} (n={len(d)})" if len(d) > 1 else "-")
+            print(f"| {names[m]} | {' | '.join(cells)} |")
     return 0
 
 

@@ -60,13 +60,13 @@ DONE = "done.json"
 ASSET_DIR = "asset"
 PRESET_TOLERANCE = 1e-3  # max |c2w difference| for a frame to count as a preset view
 RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when no LMRM is available
-# What every extract preset runs after the PBR TTO (ExtractConfig.init "pbr"): the neural TTO anchored to its start,
-# the PBR solution in the basis. Clean PathTrace / Relight on benchmark objects 0-1, mean: PBR 30.2 / 24.5 dB,
-# this 30.5 / 25.0, no anchor 30.3 / 22.8, lambda 1 29.1 / 25.1 (docs/design-notes.md, item 26). The start refined
-# in BSDF space (`pbr_bsdf_fit_steps`) begins at PBR's level where this one starts 9.7 dB below it (object 1's
-# metals), yet ends no better (29.8 / 24.6 vs 29.8 / 24.8 in the same run; the demo +0.42 dB over its fallback
-# vs +0.67), so it is not in the presets (docs/design-notes.md, item 27).
-NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.1}
+# What every extract preset runs after the PBR TTO (ExtractConfig.init "pbr"): the neural TTO from its start, the
+# PBR solution in the basis, where points that start alike must change alike (the consistency term, weight 0.1;
+# no pull towards the start's values). It lets the neural phase add a coat or a sheen to a whole material and keeps
+# it from painting the capture's light onto parts of it. On the Cycles captures (4 meshes, clean, relit - PBR) coat
+# +2.98, sheen +1.26, diffuse +2.11 dB, where the anchor to the start's values (lambda_reg 0.1, the default before)
+# gave +1.91, +0.14 and -0.01 (docs/design-notes.md, items 26 and 34).
+NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1}
 # The allowed values of ExtractConfig's numeric fields (ExtractConfig.check; the job service's bounds).
 RANGES: dict[str, Range] = {
     "view_resolution": Range(16, 1024), "blend_k": Range(1, 64), "texture_resolution": Range(16, 8192),
@@ -102,11 +102,11 @@ class ExtractConfig:
     """preset_name: the preset this config came from; tto: the TTO schedule and variant; init: "pbr" (the default: the
     PBR baseline's TTO from the LMRM's PBR head, then the neural TTO from its solution; tto/pbr_start.py), "lmrm" (the
     paper's start: the LMRM's triplane; both need the shipped LMRM checkpoint, or `lmrm_weights`) or "random". The
-    presets anchor the neural TTO to its PBR start (`NEURAL_FROM_PBR`), not to the LMRM (with the shipped LMRM that
-    anchor costs 3-4 dB of clean PathTrace; docs/design-notes.md, item 26); view_resolution: size
-    of the preset views made by prepare_views (pixels); blend_k: photos blended per pixel when views are
-    synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview renders;
-    eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); lmrm_weights: an LMRM
+    presets regularise the neural TTO against its PBR start (`NEURAL_FROM_PBR`), not against the LMRM (with the
+    shipped LMRM that anchor costs 3-4 dB of clean PathTrace; docs/design-notes.md, items 26 and 34);
+    view_resolution: size of the preset views made by prepare_views (pixels); blend_k: photos blended per pixel
+    when views are synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview
+    renders; eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); lmrm_weights: an LMRM
     .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or "cuda"; seed: every
     random draw; name: asset name (default: the capture folder's)."""
 

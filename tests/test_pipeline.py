@@ -327,3 +327,12 @@ def test_every_eval_table_is_described_and_valid():
             config = variant_config(name, TTOConfig.preset("cpu"))
             if config is not None:
                 config.check()
+    # A variant's regulariser does not follow the extraction's default: "ours" is the paper's anchor at TTOConfig's
+    # weight on every preset, and the default's own variant is the extraction's TTO.
+    from neumatex_core.pipeline import ExtractConfig
+
+    extraction = ExtractConfig.preset("cpu").tto_config()
+    assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
+    ours = variant_config("ours", extraction)
+    assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
+    assert variant_config("pbr_start_consistent_01", TTOConfig.preset("cpu")) == extraction

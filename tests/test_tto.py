@@ -301,6 +301,53 @@ def test_reg_start_anchors_the_neural_phase_to_its_pbr_start(example, truth_pred
         replace(cfg, init="lmrm").check()
 
 
+def test_consistency_costs_a_change_that_varies_over_a_material_not_one_it_shares(example, truth_prediction):
+    """L_cons (reg "start", lambda_consistency): points that start alike must change alike ("change") or end alike
+    ("value"). A change shared by every point of a material costs nothing, even when two materials change
+    differently; a change that varies over one material costs the mean squared difference of its pairs; the TTO
+    logs it (0 at the start) and the check refuses it with an anchor to the LMRM."""
+    from neumatex_core.tto import solve
+    from neumatex_core.tto.loss import consistency
+
+    g = torch.Generator().manual_seed(3)
+    points = torch.rand(512, 3, generator=g) * 2 - 1
+    target = torch.zeros(512, 9)
+    target[256:] = 1.0  # two materials, 3 (> 4 sigma) apart in G-buffer space
+    anchor = Anchor(points, None, target, torch.ones_like(target))
+    first, second = torch.randint(0, 512, (4096,), generator=g), torch.randint(0, 512, (4096,), generator=g)
+
+    def changed_by(change):
+        return lambda p, uv: target[torch.cdist(p, points).argmin(1)] + change(p)
+
+    shared = torch.linspace(-0.2, 0.3, 9)
+    assert consistency(changed_by(lambda p: shared.expand(p.shape[0], 9)), anchor, first, second, 0.25) == 0
+    per_material = changed_by(lambda p: torch.where(torch.cdist(p, points).argmin(1, keepdim=True) < 256, 0.3, -0.2)
+                              .expand(p.shape[0], 9))  # fmt: skip
+    assert float(consistency(per_material, anchor, first, second, 0.25)) < 1e-6
+    varying = changed_by(lambda p: 0.1 * p[:, :1].expand(p.shape[0], 9))
+    same = (first < 256) == (second < 256)
+    expected = float((0.01 * (points[first, 0] - points[second, 0]) ** 2)[same].mean())
+    assert float(consistency(varying, anchor, first, second, 0.25)) == pytest.approx(expected, rel=1e-4)
+    # of="value": points that start alike must end alike, whatever the start was: two uniform materials cost
+    # nothing (their pairs across are not compared), a value varying over one costs what the change did above.
+    uniform = changed_by(lambda p: torch.zeros(p.shape[0], 9))
+    assert float(consistency(uniform, anchor, first, second, 0.25, of="value")) < 1e-6
+    assert float(consistency(varying, anchor, first, second, 0.25, of="value")) == pytest.approx(expected, rel=1e-4)
+    noisy_start = Anchor(points, None, target + 0.05 * torch.randn(512, 9, generator=g), torch.ones_like(target))
+    assert float(consistency(uniform, noisy_start, first, second, 0.25, of="value")) < 1e-6  # ends alike: free
+    assert float(consistency(uniform, noisy_start, first, second, 0.25)) > 1e-3  # "change" keeps the start's noise
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0)  # fmt: skip
+    result = solve(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                   perturbed(truth_prediction, 0.2), example.basis)  # fmt: skip
+    cons = [r["consistency"] for r in result.history if r["phase"] == 1.0]
+    assert len(cons) == 4 and cons[0] == pytest.approx(0.0, abs=1e-9) and max(cons) > 0
+    assert all("consistency" not in r for r in result.history if r["phase"] == 0.0)
+    with pytest.raises(ValueError, match="lambda_consistency"):
+        replace(cfg, init="lmrm", reg="uncertainty").check()
+
+
 def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(example, truth_prediction, tmp_path):
     """select_anchor: both phases fit all photos but the held-out ones (spread over the capture), the neural phase
     anchored and free, each scored on the held-out photos; the margin decides (a huge one keeps the anchor, a

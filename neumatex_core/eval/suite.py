@@ -62,6 +62,14 @@ ROW_NAMES = {
     "pbr_start_anchor_01": "neural from the PBR solution, anchored to it (lambda 0.1)",
     "pbr_start_anchor_select": "neural from the PBR solution, anchored (lambda 0.1) or not, chosen on held-out photos",
     "pbr_start_anchor_1": "neural from the PBR solution, anchored to it (lambda 1)",
+    "pbr_start_anchor_01_1000": "neural from the PBR solution, anchored (lambda 0.1), 1000 neural steps",
+    "pbr_start_consistent_01": "neural from the PBR solution, points that start alike change alike (0.1)",
+    "pbr_start_consistent_1": "neural from the PBR solution, points that start alike change alike (1)",
+    "pbr_start_alike_01": "neural from the PBR solution, points that start alike end alike (0.1)",
+    "pbr_start_alike_1": "neural from the PBR solution, points that start alike end alike (1)",
+    "pbr_start_alike_1_s01": "the same, sigma 0.1",
+    "pbr_start_alike_latent_1": "the same for the latent, the base colour changes alike",
+    "pbr_start_alike_rho_1": "the same for the base colour, the latent changes alike",
     "pbr_start_anchor_01_bsdf": "neural from the PBR solution refined in BSDF space, anchored (lambda 0.1)",
     "pbr_start_anchor_01_bsdf_v2": "the same in basis v2",
     "pbr_start_anchor_01_v3": "neural from the PBR solution, anchored (lambda 0.1), basis v3",
@@ -102,6 +110,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                   "tto_minutes"),
     "spp32": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
               "psnr_relight_clean", "tto_minutes"),
+    "consistency": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                    "psnr_relight_clean", "tto_minutes"),
     "decorrelated": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
                      "psnr_relight_clean", "tto_minutes"),
 }
@@ -117,6 +127,7 @@ TABLE_TITLES = {
     "averaging": "Iterate averaging: the mean of the last half of the steps as the result (issue 14)",
     "spp32": "Samples per pixel in TTO: 256 pixels x 32 spp (the photos' own count) against 1024 x 8 (issue 14)",
     "decorrelated": "The photometric loss without the render's variance: independent sample errors (issue 14)",
+    "consistency": "Points that start alike change alike: the consistency term instead of the anchor (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")
 

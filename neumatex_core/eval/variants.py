@@ -19,7 +19,10 @@ default with the result the mean iterate of the last half of each phase (`averag
 PBR and that default with the photometric loss of two independent half-estimates per pixel (`photo_loss`,
 tto/loss.py), so the render's Monte Carlo variance no longer pulls the material towards what renders with less noise.
 Spp32 (issue 14): the same rays per step as 256 pixels x 32 spp (the benchmark photos' own sample count) instead of
-1024 x 8.
+1024 x 8. Consistency (issue 14, docs/design-notes.md item 34): the neural phase without the anchor's pull to the
+start's values but with the consistency term (`lambda_consistency`): points that start alike change alike
+("change", the extraction's default at 0.1) or end alike ("value"; "value_latent" and "value_rho" apply it to the
+latent or the base colour alone, the other by its change), against the anchored recipe at 400 and 1000 steps.
 """
 
 from __future__ import annotations
@@ -52,6 +55,19 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_v2": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2},
     "pbr_start_v2_decoder": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "train_decoder": True},
     "pbr_start_1000": {**OURS, "init": "pbr", "reg": "none", "steps": 1000},
+    "pbr_start_anchor_01_1000": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "steps": 1000},
+    "pbr_start_consistent_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1},
+    "pbr_start_consistent_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0},
+    "pbr_start_alike_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
+                           "consistency_of": "value"},
+    "pbr_start_alike_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0,
+                          "consistency_of": "value"},
+    "pbr_start_alike_1_s01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0,
+                              "consistency_of": "value", "consistency_sigma": 0.1},
+    "pbr_start_alike_latent_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0,
+                                 "consistency_of": "value_latent"},
+    "pbr_start_alike_rho_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0,
+                              "consistency_of": "value_rho"},
     "pbr_start_v2_1000": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "steps": 1000},
     "pbr_start_anchor_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1},
     "pbr_start_anchor_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 1.0},
@@ -98,16 +114,27 @@ TABLES: dict[str, list[str]] = {
                    "pbr_start_bsdf_lr02", "pbr_start_anchor_01_v4", "pbr_start_v4"],
     "averaging": ["pbr", "pbr_avg", "pbr_start_anchor_01", "pbr_start_anchor_01_avg"],
     "spp32": ["pbr", "pbr_spp32", "pbr_start_anchor_01", "pbr_start_anchor_01_spp32"],
+    "consistency": ["pbr", "pbr_start_anchor_01", "pbr_start_anchor_01_1000", "pbr_start_consistent_01",
+                    "pbr_start_consistent_1", "pbr_start_alike_1"],
     "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",
                      "pbr_start_anchor_01_decorrelated", "pbr_start_anchor_01_lin_decorrelated"],
 }
 
 
+# A variant's regulariser is its own: these fields start from TTOConfig's defaults (the paper's uncertainty anchor
+# at its weight, no consistency term), not from the extraction preset `base`, whose regulariser follows the
+# extraction's default (pipeline.NEURAL_FROM_PBR) and changed with it. (From 2026-11-24 to 2026-11-27 the presets'
+# lambda_reg 0.1 reached the variants that do not set their own: "ours", t2c, t2f, t3c, t3d, ours_pbr_start.)
+REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of")
+
+
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:
-    """The TTOConfig of variant `name` on `base`; None for "no TTO" (evaluate the LMRM prediction itself)."""
+    """The TTOConfig of variant `name` on `base` (its schedule: steps, pixels, spp, ...; its regulariser fields are
+    TTOConfig's defaults unless the variant sets them); None for "no TTO" (evaluate the LMRM prediction itself)."""
     if name not in VARIANTS:
         raise ValueError(f"unknown variant {name!r} (expected one of {', '.join(VARIANTS)})")
     overrides = dict(VARIANTS[name])
     if overrides.get("steps") == 0:
         return None
-    return replace(base, **overrides)
+    paper = TTOConfig()
+    return replace(base, **{**{f: getattr(paper, f) for f in REGULARISER_FIELDS}, **overrides})

@@ -35,6 +35,7 @@ from neumatex_core.tto.loss import PhotoLossKind
 FieldKind = Literal["triplane", "uv"]
 InitKind = Literal["lmrm", "random", "pbr"]
 RegKind = Literal["uncertainty", "none", "oracle", "start"]
+ConsistencyKind = Literal["change", "value", "value_latent", "value_rho"]
 MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
 PRESETS = ("tiny", "cpu", "gpu")
@@ -43,6 +44,7 @@ BIG = 1 << 24
 RANGES: dict[str, Range] = {
     "steps": Range(1, 100_000), "pixels": Range(1, 1 << 20), "spp": Range(1, 4096), "max_bounces": Range(1, 64),
     "lr": Range(0, 100, lo_open=True), "lr_final": Range(0, 1, lo_open=True), "lambda_reg": Range(0, 1e6),
+    "lambda_consistency": Range(0, 1e6), "consistency_sigma": Range(0, 100, lo_open=True),
     "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
@@ -127,6 +129,13 @@ class TTOConfig:
     select_anchor: bool = False
     validation_photos: int = 4
     select_margin_db: float = 0.25
+    # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
+    # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
+    # start, so the neural phase may move a material everywhere at once (what PBR could not represent) but not paint
+    # the capture's lighting onto parts of it (docs/design-notes.md, item 34)
+    lambda_consistency: float = 0.0
+    consistency_sigma: float = 0.25
+    consistency_of: ConsistencyKind = "change"
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:
@@ -161,6 +170,9 @@ class TTOConfig:
             raise ValueError("TTO select_anchor chooses between the anchor to the PBR start and none: it needs init "
                              f"'pbr', reg 'start' and lambda_reg > 0, got {self.init!r}, {self.reg!r}, "
                              f"{self.lambda_reg}")
+        if self.lambda_consistency > 0 and self.reg in ("uncertainty", "oracle"):
+            raise ValueError(f"TTO lambda_consistency compares each point's change from the PBR start: it needs reg "
+                             f"'start', got {self.reg!r}")
         if self.reg == "start" and self.init != "pbr":
             raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")
         if self.basis and (self.init == "lmrm" or self.reg not in ("none", "start")):

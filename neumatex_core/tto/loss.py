@@ -110,3 +110,26 @@ def regulariser(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Ten
     uv = None if anchor.uv is None else anchor.uv[index]
     diff = gbuffer(anchor.points[index], uv) - anchor.target[index]
     return (anchor.weight[index] * diff * diff).mean()
+
+
+def consistency(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor], anchor: Anchor,
+                first: torch.Tensor, second: torch.Tensor, sigma: float, of: str = "change") -> torch.Tensor:
+    """L_cons over the anchor point pairs (first[n], second[n]): the weighted mean of (d_a - d_b)^2 (mean over the
+    K channels), weight exp(-|target_a - target_b|^2 / (2 sigma^2)), so only points that start alike (the same
+    material in the anchor's target, the start) are compared. of="change": d = gbuffer(points) - target, points
+    that start alike must change alike: a change shared by the whole material (a coat or a sheen the start lacks)
+    costs nothing, one that varies over its surface (the capture's light painted onto it) does, and the start's own
+    spatial pattern is kept. of="value": d = gbuffer(points), points that start alike must end alike (an
+    edge-preserving smoothing guided by the start, which also removes the start's noise)."""
+    both = torch.cat([first, second])
+    uv = None if anchor.uv is None else anchor.uv[both]
+    value = gbuffer(anchor.points[both], uv)
+    change = value - anchor.target[both]
+    if of == "value_latent":  # the latent (channels 3:) by value, the base colour rho_d (0:3) by its change
+        change = torch.cat([change[:, :3], value[:, 3:]], 1)
+    if of == "value_rho":  # the base colour rho_d (channels 0:3) by value, the latent (3:) by its change
+        change = torch.cat([value[:, :3], change[:, 3:]], 1)
+    da, db = (value if of == "value" else change).split(first.shape[0])
+    gap = anchor.target[first] - anchor.target[second]
+    weight = torch.exp(-(gap * gap).sum(1) / (2 * sigma * sigma))
+    return (weight * ((da - db) ** 2).mean(1)).sum() / weight.sum().clamp_min(1e-12)

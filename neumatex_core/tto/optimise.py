@@ -41,7 +41,14 @@ from neumatex_core.render.scene import Scene
 from neumatex_core.render.transport_cache import TransportCache, TransportCacheConfig
 from neumatex_core.tto.config import TTOConfig
 from neumatex_core.tto.data import PhotoSet
-from neumatex_core.tto.loss import Anchor, oracle_weights, photometric_loss, regulariser, uncertainty_weights
+from neumatex_core.tto.loss import (
+    Anchor,
+    consistency,
+    oracle_weights,
+    photometric_loss,
+    regulariser,
+    uncertainty_weights,
+)
 from neumatex_core.tto.params import PBRUV, NeuralTriplane, NeuralUV, Parametrisation, PBRTriplane
 
 Progress = Callable[[int, int, dict[str, float]], None]
@@ -373,11 +380,17 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
                                             config.photo_loss)  # fmt: skip
         loss = photo
         reg = torch.zeros((), device=problem.device)
+        cons: torch.Tensor | None = None
         if anchor is not None:
             n = anchor.points.shape[0]
             idx = torch.randint(0, n, (min(config.reg_points, n),), generator=g, device=problem.device)
             reg = regulariser(params.gbuffer, anchor, idx)
             loss = photo + config.lambda_reg * reg
+            if config.lambda_consistency > 0:  # drawn after idx, so runs without it keep their random numbers
+                other = torch.randint(0, n, idx.shape, generator=g, device=problem.device)
+                cons = consistency(params.gbuffer, anchor, idx, other, config.consistency_sigma,
+                                   config.consistency_of)
+                loss = loss + config.lambda_consistency * cons
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -390,6 +403,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         mse = float(mse_t)
         row = {"step": float(step), "loss": float(loss.detach()), "photo": mse, "reg": float(reg.detach()),
                "psnr": 10 * math.log10(1 / max(mse, 1e-12)), "lr": lr}  # fmt: skip
+        if cons is not None:
+            row["consistency"] = float(cons.detach())
         if exposure is not None:  # the largest fitted exposure correction so far, in stops (|log2 s_f|)
             row["exposure_stops_max"] = float(exposure.scale().detach().log2().abs().max())
         history.append(row)

@@ -188,7 +188,7 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
         problem.exposure.start_at(first.exposure)
     start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
                                  config.pbr_bsdf_fit_steps)
-    if config.reg == "start" and config.lambda_reg > 0:  # weight 1 towards the start's own G-buffers
+    if config.reg == "start" and (config.lambda_reg > 0 or config.lambda_consistency > 0):  # weight 1: the start
         points, uv = problem.mesh.sample_surface(config.reg_pool, seed=config.seed)
         points = points.to(problem.params.tensor.device)
         with torch.no_grad():

@@ -1,0 +1,120 @@
+"""TTO variants against the extraction's default and the PBR baseline on the benchmark's objects, scored clean and
+paired per object (issue 14): the same harness as `neumatex eval` (`eval/harness.evaluate_variant`, cpu preset,
+the object's 23 preset views, relight views 0, 8, 16), one object per worker process at one torch thread.
+
+    NEUMATEX_SHARED=../shared .venv/bin/python bench/variants_clean.py --variants pbr_start_consistent_1 \\
+        --objects test-000010,test-000011 [--workers 2]
+    .venv/bin/python bench/variants_clean.py --summarise --variants pbr_start_consistent_1
+
+Each finished (object, variant) appends one JSON line to bench/results/variants_clean.jsonl, so a stopped run
+resumes where it stopped (an object already there for a variant is skipped). `--summarise` prints, per metric,
+each variant's mean and its paired difference (mean +- standard error over objects) against every baseline in
+--against (default: the default extraction `pbr_start_anchor_01` and the PBR baseline `pbr`). A baseline's rows
+come from this file and from bench/results/random_pose_e2e.jsonl (its "preset/<variant>" rows: the same
+harness on the same preset views), the latest per object. Needs the objects' references (`neumatex references`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import write_result  # noqa: E402
+
+from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
+from neumatex_core.eval.suite import select_objects  # noqa: E402
+from neumatex_core.pipeline import ExtractConfig  # noqa: E402
+
+METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor", "psnr_latents")
+NAMES = {"psnr_pathtrace_clean": "PathTrace, clean", "psnr_relight_clean": "Relight, clean",
+         "psnr_basecolor": "BaseColor", "psnr_latents": "Latents"}  # fmt: skip
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def one(object_dir: str, work: str, variant: str) -> dict[str, Any]:
+    """The scores of `variant` on one object (preset views)."""
+    torch.set_num_threads(1)
+    config = ExtractConfig.preset("cpu", device="cpu")
+    scores = evaluate_variant(object_dir, work, variant, config, relight_views=(0, 8, 16))
+    return {"object": Path(object_dir).name, "variant": variant,
+            "scores": {m: float(scores[m]) for m in (*METRICS, "tto_minutes") if m in scores}}  # fmt: skip
+
+
+def stored_rows() -> dict[str, dict[str, dict[str, float]]]:
+    """variant -> object -> scores: this benchmark's rows, then random_pose_e2e's preset rows where this one has
+    none (the latest line wins within each file)."""
+    rows: dict[str, dict[str, dict[str, float]]] = {}
+    e2e = RESULTS / "random_pose_e2e.jsonl"
+    if e2e.is_file():
+        for line in e2e.read_text().splitlines():
+            for row in json.loads(line).get("rows", []):
+                for key, scores in row.items():
+                    if key.startswith("preset/"):
+                        rows.setdefault(key.split("/", 1)[1], {})[row["object"]] = scores
+    own = RESULTS / "variants_clean.jsonl"
+    if own.is_file():
+        for line in own.read_text().splitlines():
+            row = json.loads(line)
+            rows.setdefault(row["variant"], {})[row["object"]] = row["scores"]
+    return rows
+
+
+def summarise(variants: list[str], against: list[str]) -> int:
+    rows = stored_rows()
+    for variant in variants:
+        mine = rows.get(variant, {})
+        if not mine:
+            print(f"{variant}: no rows yet")
+            continue
+        print(f"\n{variant} (n={len(mine)}: {', '.join(sorted(mine))})")
+        print("| PSNR, dB | " + " | ".join([variant] + [f"{variant} - {b}" for b in against]) + " |")
+        print("|---" * (2 + len(against)) + "|")
+        for m in METRICS:
+            cells = [f"{np.mean([s[m] for s in mine.values() if m in s]):.2f}"]
+            for base in against:
+                both = [o for o in mine if o in rows.get(base, {}) and m in mine[o] and m in rows[base][o]]
+                d = np.array([mine[o][m] - rows[base][o][m] for o in both])
+                d = d[np.isfinite(d)]  # the PBR baseline has no latents
+                cells.append(f"{d.mean():+.2f} +- {d.std(ddof=1) / np.sqrt(len(d)):.2f} (n={len(d)})"
+                             if len(d) > 1 else "-")  # fmt: skip
+            print(f"| {NAMES[m]} | {' | '.join(cells)} |")
+    return 0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", default="data/benchmark-test")
+    parser.add_argument("--objects", default="all")
+    parser.add_argument("--variants", default="pbr_start_consistent_1")
+    parser.add_argument("--against", default="pbr_start_anchor_01,pbr")
+    parser.add_argument("--work", default="runs/bench-variants-clean")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--summarise", action="store_true", help="print the paired table so far and stop")
+    args = parser.parse_args()
+    variants, against = args.variants.split(","), args.against.split(",")
+    if args.summarise:
+        return summarise(variants, against)
+    data = Path(args.data)
+    done = stored_rows()
+    jobs = [(str(data / o), str(Path(args.work) / o), v) for v in variants for o in select_objects(data, args.objects)
+            if o not in done.get(v, {})]  # fmt: skip
+    print(f"{len(jobs)} (object, variant) pairs to run", flush=True)
+    with ProcessPoolExecutor(args.workers) as pool:
+        for future in as_completed([pool.submit(one, *job) for job in jobs]):  # each kept as soon as it is done
+            row = future.result()
+            write_result("variants_clean", row)
+            print(f"{row['object']} {row['variant']}: " + ", ".join(f"{NAMES[m]} {row['scores'][m]:.2f}"
+                  for m in METRICS if m in row["scores"]), flush=True)  # fmt: skip
+    return summarise(variants, against)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
