@@ -131,8 +131,9 @@ class TTOConfig:
     select_margin_db: float = 0.25
     # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
     # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
-    # start, so the neural phase may move a material everywhere at once (what PBR could not represent) but not paint
-    # the capture's lighting onto parts of it (docs/design-notes.md, item 34)
+    # start (consistency_of "change"; "value": end alike), so the neural phase may move a material everywhere at once
+    # (what PBR could not represent) but not paint the capture's lighting onto parts of it (docs/design-notes.md,
+    # item 34)
     lambda_consistency: float = 0.0
     consistency_sigma: float = 0.25
     consistency_of: ConsistencyKind = "change"

@@ -120,7 +120,9 @@ def consistency(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Ten
     that start alike must change alike: a change shared by the whole material (a coat or a sheen the start lacks)
     costs nothing, one that varies over its surface (the capture's light painted onto it) does, and the start's own
     spatial pattern is kept. of="value": d = gbuffer(points), points that start alike must end alike (an
-    edge-preserving smoothing guided by the start, which also removes the start's noise)."""
+    edge-preserving smoothing guided by the start, which also removes the start's noise); "value_latent" /
+    "value_rho": "value" for the latent (channels 3:) / the base colour rho_d (0:3), "change" for the others.
+    Measured in docs/design-notes.md, item 34."""
     both = torch.cat([first, second])
     uv = None if anchor.uv is None else anchor.uv[both]
     value = gbuffer(anchor.points[both], uv)
