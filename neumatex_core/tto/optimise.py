@@ -384,8 +384,9 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         if anchor is not None:
             n = anchor.points.shape[0]
             idx = torch.randint(0, n, (min(config.reg_points, n),), generator=g, device=problem.device)
-            reg = regulariser(params.gbuffer, anchor, idx)
-            loss = photo + config.lambda_reg * reg
+            if config.lambda_reg > 0:  # the default (consistency term alone) skips this decoder pass
+                reg = regulariser(params.gbuffer, anchor, idx)
+                loss = photo + config.lambda_reg * reg
             if config.lambda_consistency > 0:  # drawn after idx, so runs without it keep their random numbers
                 other = torch.randint(0, n, idx.shape, generator=g, device=problem.device)
                 cons = consistency(params.gbuffer, anchor, idx, other, config.consistency_sigma,
