@@ -303,9 +303,10 @@ def test_reg_start_anchors_the_neural_phase_to_its_pbr_start(example, truth_pred
 
 def test_consistency_costs_a_change_that_varies_over_a_material_not_one_it_shares(example, truth_prediction):
     """L_cons (reg "start", lambda_consistency): points that start alike must change alike ("change") or end alike
-    ("value"). A change shared by every point of a material costs nothing, even when two materials change
-    differently; a change that varies over one material costs the mean squared difference of its pairs; the TTO
-    logs it (0 at the start) and the check refuses it with an anchor to the LMRM."""
+    ("value"), and with consistency_rho_value / _latent_value their base colours / latents end alike too. A
+    change shared by every point of a material costs nothing, even when two materials change differently; a change
+    that varies over one material costs the mean squared difference of its pairs; the TTO logs it (0 at the start)
+    and the check refuses it with an anchor to the LMRM."""
     from neumatex_core.tto import solve
     from neumatex_core.tto.loss import consistency
 
@@ -336,6 +337,15 @@ def test_consistency_costs_a_change_that_varies_over_a_material_not_one_it_share
     noisy_start = Anchor(points, None, target + 0.05 * torch.randn(512, 9, generator=g), torch.ones_like(target))
     assert float(consistency(uniform, noisy_start, first, second, 0.25, of="value")) < 1e-6  # ends alike: free
     assert float(consistency(uniform, noisy_start, first, second, 0.25)) > 1e-3  # "change" keeps the start's noise
+    # rho_value / latent_value: "change" for everything plus that part's values; on the clean start a change
+    # varying over every channel costs its change (mean over 9) and the part's value differences at weight 2 (mean
+    # over its channels) on top; on the noisy start, a uniform result pays only the change term (the part ends
+    # alike whatever the start's noise)
+    for part in ({"rho_value": 2.0}, {"latent_value": 2.0}):
+        assert float(consistency(varying, anchor, first, second, 0.25, **part)) == pytest.approx(3 * expected,
+                                                                                                rel=1e-4)
+        assert float(consistency(uniform, noisy_start, first, second, 0.25, **part)) == pytest.approx(
+            float(consistency(uniform, noisy_start, first, second, 0.25)), rel=1e-5)
 
     cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
                            lambda_reg=0.0, lambda_consistency=1.0)  # fmt: skip
@@ -344,6 +354,10 @@ def test_consistency_costs_a_change_that_varies_over_a_material_not_one_it_share
     cons = [r["consistency"] for r in result.history if r["phase"] == 1.0]
     assert len(cons) == 4 and cons[0] == pytest.approx(0.0, abs=1e-9) and max(cons) > 0
     assert all("consistency" not in r for r in result.history if r["phase"] == 0.0)
+    # with rho_value the start itself pays: its base colours differ between alike points, its changes do not
+    result = solve(replace(cfg, consistency_rho_value=1.0), example.mesh, example.envmap, example.photos,
+                   example.capture.tonemap, perturbed(truth_prediction, 0.2), example.basis)  # fmt: skip
+    assert [r["consistency"] for r in result.history if r["phase"] == 1.0][0] > 1e-6
     with pytest.raises(ValueError, match="lambda_consistency"):
         replace(cfg, init="lmrm", reg="uncertainty").check()
 

@@ -22,7 +22,10 @@ Spp32 (issue 14): the same rays per step as 256 pixels x 32 spp (the benchmark p
 1024 x 8. Consistency (issue 14, docs/design-notes.md item 34): the neural phase without the anchor's pull to the
 start's values but with the consistency term (`lambda_consistency`): points that start alike change alike
 ("change", the extraction's default at 0.1) or end alike ("value"; "value_latent" and "value_rho" apply it to the
-latent or the base colour alone, the other by its change), against the anchored recipe at 400 and 1000 steps.
+latent or the base colour alone, the other by its change), against the anchored recipe at 400 and 1000 steps;
+outside the tables (item 35): the default's weight at 0.03 and 0.3, the default with the base colour's or the
+latent's values compared too (`consistency_rho_value`, `consistency_latent_value`), with a wider sigma, in bases v3
+and v4, and with twice the PBR phase.
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_1000": {**OURS, "init": "pbr", "reg": "none", "steps": 1000},
     "pbr_start_anchor_01_1000": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "steps": 1000},
     "pbr_start_consistent_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1},
+    "pbr_start_consistent_003": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.03},
+    "pbr_start_consistent_03": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.3},
     "pbr_start_consistent_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0},
     "pbr_start_alike_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                            "consistency_of": "value"},
@@ -68,6 +73,29 @@ VARIANTS: dict[str, dict[str, Any]] = {
                                  "consistency_of": "value_latent"},
     "pbr_start_alike_rho_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0,
                               "consistency_of": "value_rho"},
+    # the default ("change" at 0.1) with the base colour's values compared too, at 0.1 / 0.3 / 1 absolute
+    "pbr_start_consistent_rho_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                    "lambda_consistency": 0.1, "consistency_rho_value": 1.0},
+    "pbr_start_consistent_rho_03": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                    "lambda_consistency": 0.1, "consistency_rho_value": 3.0},
+    "pbr_start_consistent_rho_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                   "lambda_consistency": 0.1, "consistency_rho_value": 10.0},
+    # the default with the latent's values compared too, at 0.1 / 0.3 absolute
+    "pbr_start_consistent_lat_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                    "lambda_consistency": 0.1, "consistency_latent_value": 1.0},
+    "pbr_start_consistent_lat_03": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                    "lambda_consistency": 0.1, "consistency_latent_value": 3.0},
+    # the default comparing pairs further apart in the start (sigma 0.5 instead of 0.25)
+    "pbr_start_consistent_01_s05": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                    "lambda_consistency": 0.1, "consistency_sigma": 0.5},
+    # the default with twice the PBR phase's steps (a start with less of the gradient noise in its base colour)
+    "pbr_start_consistent_01_pbr400": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                       "lambda_consistency": 0.1, "pbr_steps": 400},
+    # the default in bases v3 and v4 (docs/design-notes.md items 30, 33: their spheres beat v1's)
+    "pbr_start_consistent_01_v3": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                   "lambda_consistency": 0.1, "basis": BASIS_V3},
+    "pbr_start_consistent_01_v4": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
+                                   "lambda_consistency": 0.1, "basis": BASIS_V4},
     "pbr_start_v2_1000": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "steps": 1000},
     "pbr_start_anchor_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1},
     "pbr_start_anchor_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 1.0},
@@ -125,7 +153,8 @@ TABLES: dict[str, list[str]] = {
 # at its weight, no consistency term), not from the extraction preset `base`, whose regulariser follows the
 # extraction's default (pipeline.NEURAL_FROM_PBR) and changed with it. (From 2026-11-24 to 2026-11-27 the presets'
 # lambda_reg 0.1 reached the variants that do not set their own: "ours", t2c, t2f, t3c, t3d, ours_pbr_start.)
-REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of")
+REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of",
+                      "consistency_rho_value", "consistency_latent_value")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

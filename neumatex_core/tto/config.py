@@ -45,6 +45,7 @@ RANGES: dict[str, Range] = {
     "steps": Range(1, 100_000), "pixels": Range(1, 1 << 20), "spp": Range(1, 4096), "max_bounces": Range(1, 64),
     "lr": Range(0, 100, lo_open=True), "lr_final": Range(0, 1, lo_open=True), "lambda_reg": Range(0, 1e6),
     "lambda_consistency": Range(0, 1e6), "consistency_sigma": Range(0, 100, lo_open=True),
+    "consistency_rho_value": Range(0, 1e6), "consistency_latent_value": Range(0, 1e6),
     "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
@@ -137,6 +138,10 @@ class TTOConfig:
     lambda_consistency: float = 0.0
     consistency_sigma: float = 0.25
     consistency_of: ConsistencyKind = "change"
+    # and, at these weights relative to the term, the same pairs' base colours rho_d / latents must end alike
+    # (docs/design-notes.md, item 35)
+    consistency_rho_value: float = 0.0
+    consistency_latent_value: float = 0.0
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:

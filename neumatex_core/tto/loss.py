@@ -113,7 +113,8 @@ def regulariser(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Ten
 
 
 def consistency(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor], anchor: Anchor,
-                first: torch.Tensor, second: torch.Tensor, sigma: float, of: str = "change") -> torch.Tensor:
+                first: torch.Tensor, second: torch.Tensor, sigma: float, of: str = "change",
+                rho_value: float = 0.0, latent_value: float = 0.0) -> torch.Tensor:
     """L_cons over the anchor point pairs (first[n], second[n]): the weighted mean of (d_a - d_b)^2 (mean over the
     K channels), weight exp(-|target_a - target_b|^2 / (2 sigma^2)), so only points that start alike (the same
     material in the anchor's target, the start) are compared. of="change": d = gbuffer(points) - target, points
@@ -122,7 +123,9 @@ def consistency(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Ten
     spatial pattern is kept. of="value": d = gbuffer(points), points that start alike must end alike (an
     edge-preserving smoothing guided by the start, which also removes the start's noise); "value_latent" /
     "value_rho": "value" for the latent (channels 3:) / the base colour rho_d (0:3), "change" for the others.
-    Measured in docs/design-notes.md, item 34."""
+    rho_value / latent_value add, per pair and at that weight relative to the above, the mean over rho_d's 3
+    channels / the latent's of (value_a - value_b)^2: that part ends alike while the rest only changes alike.
+    Measured in docs/design-notes.md, items 34 and 35."""
     both = torch.cat([first, second])
     uv = None if anchor.uv is None else anchor.uv[both]
     value = gbuffer(anchor.points[both], uv)
@@ -134,4 +137,9 @@ def consistency(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Ten
     da, db = (value if of == "value" else change).split(first.shape[0])
     gap = anchor.target[first] - anchor.target[second]
     weight = torch.exp(-(gap * gap).sum(1) / (2 * sigma * sigma))
-    return (weight * ((da - db) ** 2).mean(1)).sum() / weight.sum().clamp_min(1e-12)
+    cost = ((da - db) ** 2).mean(1)
+    for part, weight_of_part in ((slice(0, 3), rho_value), (slice(3, None), latent_value)):
+        if weight_of_part > 0:
+            va, vb = value[:, part].split(first.shape[0])
+            cost = cost + weight_of_part * ((va - vb) ** 2).mean(1)
+    return (weight * cost).sum() / weight.sum().clamp_min(1e-12)

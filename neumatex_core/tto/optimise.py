@@ -390,7 +390,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
             if config.lambda_consistency > 0:  # drawn after idx, so runs without it keep their random numbers
                 other = torch.randint(0, n, idx.shape, generator=g, device=problem.device)
                 cons = consistency(params.gbuffer, anchor, idx, other, config.consistency_sigma,
-                                   config.consistency_of)
+                                   config.consistency_of, config.consistency_rho_value,
+                                   config.consistency_latent_value)
                 loss = loss + config.lambda_consistency * cons
         opt.zero_grad(set_to_none=True)
         loss.backward()
