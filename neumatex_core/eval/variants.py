@@ -39,6 +39,9 @@ BASIS_V2 = "nmx-basis-v2-4af9689561fa"  # materials/data/bases/v2.json
 BASIS_V3 = "nmx-basis-v3-5e859f599cbd"  # materials/data/bases/v3.json (docs/design-notes.md, item 30)
 BASIS_V4 = "nmx-basis-v4-2b82d9690606"  # materials/data/bases/v4.json (docs/design-notes.md, item 33)
 OURS: dict[str, Any] = {"field": "triplane", "init": "lmrm", "reg": "uncertainty", "material": "neural"}
+# the extraction's default since 2026-11-27 (docs/design-notes.md, item 34), fixed here so that its variants do not
+# move with pipeline.NEURAL_FROM_PBR
+CONSISTENT_01: dict[str, Any] = {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1}
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
@@ -59,10 +62,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_v2_decoder": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "train_decoder": True},
     "pbr_start_1000": {**OURS, "init": "pbr", "reg": "none", "steps": 1000},
     "pbr_start_anchor_01_1000": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "steps": 1000},
-    "pbr_start_consistent_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1},
-    "pbr_start_consistent_003": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.03},
-    "pbr_start_consistent_03": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.3},
-    "pbr_start_consistent_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0},
+    "pbr_start_consistent_01": {**CONSISTENT_01},
+    "pbr_start_consistent_003": {**CONSISTENT_01, "lambda_consistency": 0.03},
+    "pbr_start_consistent_03": {**CONSISTENT_01, "lambda_consistency": 0.3},
+    "pbr_start_consistent_1": {**CONSISTENT_01, "lambda_consistency": 1.0},
     "pbr_start_alike_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                            "consistency_of": "value"},
     "pbr_start_alike_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0,
@@ -74,28 +77,19 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_alike_rho_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 1.0,
                               "consistency_of": "value_rho"},
     # the default ("change" at 0.1) with the base colour's values compared too, at 0.1 / 0.3 / 1 absolute
-    "pbr_start_consistent_rho_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                    "lambda_consistency": 0.1, "consistency_rho_value": 1.0},
-    "pbr_start_consistent_rho_03": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                    "lambda_consistency": 0.1, "consistency_rho_value": 3.0},
-    "pbr_start_consistent_rho_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                   "lambda_consistency": 0.1, "consistency_rho_value": 10.0},
+    "pbr_start_consistent_rho_01": {**CONSISTENT_01, "consistency_rho_value": 1.0},
+    "pbr_start_consistent_rho_03": {**CONSISTENT_01, "consistency_rho_value": 3.0},
+    "pbr_start_consistent_rho_1": {**CONSISTENT_01, "consistency_rho_value": 10.0},
     # the default with the latent's values compared too, at 0.1 / 0.3 absolute
-    "pbr_start_consistent_lat_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                    "lambda_consistency": 0.1, "consistency_latent_value": 1.0},
-    "pbr_start_consistent_lat_03": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                    "lambda_consistency": 0.1, "consistency_latent_value": 3.0},
+    "pbr_start_consistent_lat_01": {**CONSISTENT_01, "consistency_latent_value": 1.0},
+    "pbr_start_consistent_lat_03": {**CONSISTENT_01, "consistency_latent_value": 3.0},
     # the default comparing pairs further apart in the start (sigma 0.5 instead of 0.25)
-    "pbr_start_consistent_01_s05": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                    "lambda_consistency": 0.1, "consistency_sigma": 0.5},
+    "pbr_start_consistent_01_s05": {**CONSISTENT_01, "consistency_sigma": 0.5},
     # the default with twice the PBR phase's steps (a start with less of the gradient noise in its base colour)
-    "pbr_start_consistent_01_pbr400": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                       "lambda_consistency": 0.1, "pbr_steps": 400},
+    "pbr_start_consistent_01_pbr400": {**CONSISTENT_01, "pbr_steps": 400},
     # the default in bases v3 and v4 (docs/design-notes.md items 30, 33: their spheres beat v1's)
-    "pbr_start_consistent_01_v3": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                   "lambda_consistency": 0.1, "basis": BASIS_V3},
-    "pbr_start_consistent_01_v4": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0,
-                                   "lambda_consistency": 0.1, "basis": BASIS_V4},
+    "pbr_start_consistent_01_v3": {**CONSISTENT_01, "basis": BASIS_V3},
+    "pbr_start_consistent_01_v4": {**CONSISTENT_01, "basis": BASIS_V4},
     "pbr_start_v2_1000": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "steps": 1000},
     "pbr_start_anchor_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1},
     "pbr_start_anchor_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 1.0},
