@@ -360,6 +360,8 @@ def test_consistency_costs_a_change_that_varies_over_a_material_not_one_it_share
     assert [r["consistency"] for r in result.history if r["phase"] == 1.0][0] > 1e-6
     with pytest.raises(ValueError, match="lambda_consistency"):
         replace(cfg, init="lmrm", reg="uncertainty").check()
+    with pytest.raises(ValueError, match="consistency_rho_value"):
+        replace(cfg, lambda_consistency=0.0, consistency_rho_value=1.0).check()
 
 
 def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(example, truth_prediction, tmp_path):

@@ -179,6 +179,9 @@ class TTOConfig:
         if self.lambda_consistency > 0 and self.reg in ("uncertainty", "oracle"):
             raise ValueError(f"TTO lambda_consistency compares each point's change from the PBR start: it needs reg "
                              f"'start', got {self.reg!r}")
+        if (self.consistency_rho_value > 0 or self.consistency_latent_value > 0) and self.lambda_consistency <= 0:
+            raise ValueError("TTO consistency_rho_value and consistency_latent_value weigh parts of the consistency "
+                             f"term: they need lambda_consistency > 0, got {self.lambda_consistency}")
         if self.reg == "start" and self.init != "pbr":
             raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")
         if self.basis and (self.init == "lmrm" or self.reg not in ("none", "start")):
