@@ -9,9 +9,10 @@ the object's 23 preset views, relight views 0, 8, 16), one object per worker pro
 Each finished (object, variant) appends one JSON line to bench/results/variants_clean.jsonl, so a stopped run
 resumes where it stopped (an object already there for a variant is skipped). `--summarise` prints, per metric,
 each variant's mean and its paired difference (mean +- standard error over objects) against every baseline in
---against (default: the default extraction `pbr_start_anchor_01` and the PBR baseline `pbr`). A baseline's rows
-come from this file and from bench/results/random_pose_e2e.jsonl (its "preset/<variant>" rows: the same
-harness on the same preset views), the latest per object. Needs the objects' references (`neumatex references`).
+--against (default: the anchored recipe `pbr_start_anchor_01`, the extraction's default until 2026-11-27, and the
+PBR baseline `pbr`), with eval/suite.py's `paired_difference`. A baseline's rows come from this file and from
+bench/results/random_pose_e2e.jsonl (its "preset/<variant>" rows: the same harness on the same preset views), the
+latest per object. Needs the objects' references (`neumatex references`).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import write_result  # noqa: E402
 
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
-from neumatex_core.eval.suite import select_objects  # noqa: E402
+from neumatex_core.eval.suite import Results, paired_difference, select_objects  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig  # noqa: E402
 
 METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor", "psnr_latents")
@@ -68,9 +69,11 @@ def stored_rows() -> dict[str, dict[str, dict[str, float]]]:
 
 
 def summarise(variants: list[str], against: list[str]) -> int:
-    rows = stored_rows()
+    stored = stored_rows()
+    res: Results = {v: {m: {o: s[m] for o, s in by_object.items() if m in s and np.isfinite(s[m])} for m in METRICS}
+                    for v, by_object in stored.items()}  # fmt: skip
     for variant in variants:
-        mine = rows.get(variant, {})
+        mine = stored.get(variant, {})
         if not mine:
             print(f"{variant}: no rows yet")
             continue
@@ -80,11 +83,8 @@ def summarise(variants: list[str], against: list[str]) -> int:
         for m in METRICS:
             cells = [f"{np.mean([s[m] for s in mine.values() if m in s]):.2f}"]
             for base in against:
-                both = [o for o in mine if o in rows.get(base, {}) and m in mine[o] and m in rows[base][o]]
-                d = np.array([mine[o][m] - rows[base][o][m] for o in both])
-                d = d[np.isfinite(d)]  # the PBR baseline has no latents
-                cells.append(f"{d.mean():+.2f} +- {d.std(ddof=1) / np.sqrt(len(d)):.2f} (n={len(d)})"
-                             if len(d) > 1 else "-")  # fmt: skip
+                mean, se, n = paired_difference(res, variant, base, m)  # the PBR baseline has no latents: n = 0
+                cells.append(f"{mean:+.2f} +- {se:.2f} (n={n})" if n > 1 else "-")
             print(f"| {NAMES[m]} | {' | '.join(cells)} |")
     return 0
 
