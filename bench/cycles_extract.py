@@ -125,7 +125,7 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
         seconds = time.perf_counter() - t0
         field, scene_mesh = result.params.field(), result.mesh or mesh
         print(f"{capture.name} {name}: TTO {seconds:.0f} s, scoring"
-              + (f" (select_anchor: {result.selection})" if result.selection else ""), flush=True)
+              + (f" (choice: {result.selection})" if result.selection else ""), flush=True)
         twin = capture.with_name(capture.name + TWIN_SUFFIX)
         if (twin / "cycles.json").is_file():
             relit_clean = [clean_render_psnr(r, twin / "relight" / r.name, field, clean_spp, bounces, scene_mesh,
@@ -144,7 +144,7 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
 
 
 def selection_of(result: Any) -> dict[str, Any]:
-    """The TTO's select_anchor record (held-out PSNRs, which result was kept), when it made one."""
+    """The TTO's select_anchor / select_uniform record (held-out PSNRs, which result was kept), when it made one."""
     return {"selection": result.selection} if result.selection else {}
 
 

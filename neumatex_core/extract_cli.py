@@ -32,6 +32,10 @@ class ExtractCommandConfig:
         "auto", "start the neural TTO from a PBR fit (pbr: the PBR TTO from the LMRM's PBR head first; the best "
         "measured), from the LMRM's prediction (lmrm) or a random triplane; pbr and lmrm fail without a usable LMRM "
         "checkpoint; auto: pbr when the LMRM checkpoint loads, else random (and says so)")
+    variation: Literal["textured", "uniform", "choose"] = option(
+        "textured", "how the object's material varies over its surface: textured (several materials or textures), "
+        "uniform (one material all over: a coat, a sheen; its base colour is kept even over the surface) or choose "
+        "(both tried, 4 held-out photos decide; ~2.5x the TTO time); needs the PBR start (--init pbr or auto)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
     steps: int = option(0, "TTO steps (0: the preset's)")
     photo_exposure: bool = option(False, "fit each photo's exposure in TTO (hand-held photos; docs/capture-format.md)")
@@ -72,10 +76,11 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
         init = "pbr" if lmrm_available(cfg.device) else "random"
         if init == "random":
             print("note: no usable LMRM checkpoint; starting from a random triplane (--init random)", file=sys.stderr)
-    config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed)
+    config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed, variation=cfg.variation)
     if cfg.steps or cfg.photo_exposure:
         config = replace(config, tto=replace(config.tto, steps=cfg.steps or config.tto.steps,
                                              photo_exposure=cfg.photo_exposure))
+    config.check()
     out = Path(cfg.out)
     work = Path(cfg.work) if cfg.work else default_work(out)
     state: dict[str, Any] = {"stop": False, "bar": None, "stage": None}
@@ -93,7 +98,7 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
         if state["stage"] != p.stage:
             if state["bar"] is not None:
                 state["bar"].close()
-            total = config.tto_config().total_steps() if tto else 100
+            total = config.tto_config().run_steps() if tto else 100
             # initial: a resumed TTO starts at its checkpoint's step, so the rate and ETA count only new steps
             state["bar"] = tqdm(total=total, initial=round(p.fraction * total), desc=p.stage,
                                 unit="step" if tto else "%", file=sys.stderr)  # fmt: skip
@@ -141,6 +146,6 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
               f"{added['psnr_photos_pbr_baseline']:.2f} dB (neural {metrics.get('psnr_photos', float('nan')):.2f} dB)")
     tto = read_done(work, "tto")
     print(f"wrote {path} (report: {path / 'report' / 'index.html' if path.is_dir() else 'inside the zip'}); "
-          f"TTO {config.tto_config().total_steps()} steps in {tto['minutes']:.2f} min, photo PSNR "
+          f"TTO {config.tto_config().run_steps()} steps in {tto['minutes']:.2f} min, photo PSNR "
           f"{metrics.get('psnr_photos', float('nan')):.2f} dB")
     return 0

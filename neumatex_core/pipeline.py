@@ -51,9 +51,9 @@ from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
 from neumatex_core.materials.neural_basis import load_basis
-from neumatex_core.tto.config import PRESETS, TTOConfig  # an extract preset uses the TTO preset of its name
+from neumatex_core.tto.config import PRESETS, UNIFORM_RHO_VALUE, TTOConfig  # extract presets use TTO presets
 from neumatex_core.tto.data import PhotoSet
-from neumatex_core.tto.pbr_start import solve
+from neumatex_core.tto.pbr_start import CHOICES, solve
 
 STAGES = ("validate", "prepare_views", "lmrm", "tto", "export")
 DONE = "done.json"
@@ -67,6 +67,13 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # +2.98, sheen +1.26, diffuse +2.11 dB, where the anchor to the start's values (lambda_reg 0.1, the default before)
 # gave +1.91, +0.14 and -0.01 (docs/design-notes.md, items 26 and 34).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1}
+# ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
+# the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
+# into a uniform material's base colour (Cycles captures, relit - PBR: sheen +2.09, coat +3.71 dB, against +1.26,
+# +2.98 for "textured"), and costs a textured object 1.2-1.8 dB; "choose" runs both on all photos but four and keeps
+# the one that reproduces those better (docs/design-notes.md, items 35 and 36).
+VARIATIONS: dict[str, dict[str, Any]] = {"textured": {}, "uniform": {"consistency_rho_value": UNIFORM_RHO_VALUE},
+                                         "choose": {"select_uniform": True}}
 # The allowed values of ExtractConfig's numeric fields (ExtractConfig.check; the job service's bounds).
 RANGES: dict[str, Range] = {
     "view_resolution": Range(16, 1024), "blend_k": Range(1, 64), "texture_resolution": Range(16, 8192),
@@ -106,7 +113,10 @@ class ExtractConfig:
     shipped LMRM that anchor costs 3-4 dB of clean PathTrace; docs/design-notes.md, items 26 and 34);
     view_resolution: size of the preset views made by prepare_views (pixels); blend_k: photos blended per pixel
     when views are synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview
-    renders; eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); lmrm_weights: an LMRM
+    renders; eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); variation: how the
+    object's material varies over its surface, which sets the neural phase's consistency term (init "pbr" only;
+    `VARIATIONS`): "textured" (the default: several materials or textures), "uniform" (one material all over) or
+    "choose" (both tried, held-out photos decide; about 2.5 times the TTO's time); lmrm_weights: an LMRM
     .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or "cuda"; seed: every
     random draw; name: asset name (default: the capture folder's)."""
 
@@ -120,6 +130,7 @@ class ExtractConfig:
     preview_spp: int = 32
     eval_photos: int = 4
     eval_spp: int = 16
+    variation: Literal["textured", "uniform", "choose"] = "textured"
     lmrm_weights: str = ""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     seed: int = 0
@@ -153,12 +164,16 @@ class ExtractConfig:
         problem = evaluation_only(tto)  # first: the reason that matters to whoever asked for it
         if problem:
             raise ValueError(problem)
+        if self.variation != "textured" and (self.init != "pbr" or self.tto.lambda_consistency <= 0):
+            raise ValueError(f"config variation={self.variation!r} sets the consistency term of the neural TTO from "
+                             f"the PBR start: it needs init 'pbr' and tto.lambda_consistency > 0, got init "
+                             f"{self.init!r} and lambda_consistency {self.tto.lambda_consistency}")
         tto.check()
 
     def tto_config(self) -> TTOConfig:
-        """The TTO config with this config's init switch and seed; the start anchor (reg "start") only where there
-        is a PBR start (init "pbr"), no anchor otherwise."""
-        tto = replace(self.tto, init=self.init, seed=self.seed)
+        """The TTO config with this config's init switch, seed and variation; the start anchor (reg "start") only
+        where there is a PBR start (init "pbr"), no anchor otherwise."""
+        tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[self.variation])
         return replace(tto, reg="none") if tto.reg == "start" and tto.init != "pbr" else tto
 
     def torch_device(self) -> torch.device:
@@ -487,7 +502,7 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
     return {**stops, "steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),
             "psnr_batch": float(np.mean([r["psnr"] for r in tail])), "photo_pixels": photos.size,
             "tto_s": time.perf_counter() - t0, "field": tto.field, "init": tto.init, "reg": tto.reg,
-            "material": tto.material, **result.selection}  # fmt: skip
+            "material": tto.material, "variation": config.variation, **result.selection}  # fmt: skip
 
 
 EXPOSURE_FILE = "exposure.json"  # in the tto stage's folder: the fitted per-photo exposure multipliers
@@ -675,7 +690,7 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                     gb_items += [(f"view {v} LMRM {c}", img)
                                  for c, img in _gbuffer_images(lmrm_gbuffer, norm.mesh, cam, unc)]  # fmt: skip
             sections["Material G-buffers (ours after TTO; the LMRM's prediction and uncertainty)"] = gb_items
-        run_line = (f"Ran: preset {config.preset_name}, {tto.total_steps()} TTO steps, "
+        run_line = (f"Ran: preset {config.preset_name}, {tto.run_steps()} TTO steps, "
                     f"{sum(v for k, v in timings.items() if not k.endswith('_cpu_s')):.0f} s before export; "
                     f"neural {asset.metrics.get('psnr_photos', float('nan')):.2f} dB vs PBR fallback "
                     f"{asset.metrics.get('psnr_photos_pbr', float('nan')):.2f} dB on the photos.")  # fmt: skip
@@ -683,7 +698,8 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                  f"Prediction: {record['source']}; TTO {tto.steps} steps"
                  + (f" after {tto.pbr_steps} PBR steps" if tto.init == "pbr" else "")
                  + f" of {tto.pixels} pixels x {tto.spp} spp, {tto.max_bounces} bounces; field {tto.field}, "
-                 f"init {tto.init}, reg {tto.reg}."]  # fmt: skip
+                 f"init {tto.init}, reg {tto.reg}; material variation {config.variation}"
+                 + _choice_note(stage_metrics["tto"]) + "."]  # fmt: skip
         if not record["trained"]:
             notes.append("No trained LMRM checkpoint was available: the triplane started from random values and the "
                          "TTO ran without the uncertainty regulariser.")  # fmt: skip
@@ -693,6 +709,18 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                                             fitted),
                               target / "report")  # fmt: skip
     return {**asset.metrics, "asset": str(target), "report": str(report)}
+
+
+def _choice_note(tto_metrics: dict[str, Any]) -> str:
+    """The report's words for the choice the TTO made on held-out photos (TTOConfig.select_uniform /
+    select_anchor, recorded in the tto stage's metrics), or "" when it made none."""
+    for choice in CHOICES.values():
+        if choice.kept_key in tto_metrics:
+            a, b = choice.names
+            return (f" ({a if tto_metrics[choice.kept_key] else b} chosen on {tto_metrics['validation_photos']:.0f} "
+                    f"held-out photos: {a} {tto_metrics[f'validation_psnr_{a}']:.2f} dB, {b} "
+                    f"{tto_metrics[f'validation_psnr_{b}']:.2f} dB)")
+    return ""
 
 
 _RUNNERS: dict[str, Callable[..., dict[str, Any]]] = {

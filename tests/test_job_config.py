@@ -27,6 +27,7 @@ def test_schema_bounds_are_the_core_ranges() -> None:
             assert bounds["maximum"] == allowed.hi, name
             assert bounds["exclusiveMinimum" if allowed.lo_open else "minimum"] == allowed.lo, name
     assert schema["properties"]["device"]["anyOf"][0]["enum"] == ["auto", "cpu", "cuda"]
+    assert schema["properties"]["variation"]["anyOf"][0]["enum"] == ["textured", "uniform", "choose"]
     assert "lmrm_weights" not in schema["properties"] and "init" not in schema["$defs"]["TTOOverrides"]["properties"]
 
 
@@ -42,6 +43,9 @@ def test_schema_bounds_are_the_core_ranges() -> None:
     ({"tto": {"reg": "oracle"}}, "evaluation variant"),
     ({"tto": {"material": "pbr"}}, "PBR baseline"),
     ({"init": "pbr", "tto": {"field": "uv"}}, "init='pbr'"),
+    ({"variation": "striped"}, "variation"),
+    ({"init": "random", "variation": "uniform"}, "variation='uniform'"),
+    ({"tto": {"select_uniform": True, "lambda_consistency": 0}}, "select_uniform"),
 ])  # fmt: skip
 def test_bad_configs_are_refused_before_the_job(overrides: dict, words: str) -> None:
     with pytest.raises(ValueError, match=words.replace("(", r"\(").replace(".", r"\.")):
@@ -53,6 +57,7 @@ def test_good_config_builds_the_pipeline_config() -> None:
                                 "tto": {"steps": 5, "lr": 1}})  # fmt: skip
     assert cfg.name == "red teapot" and cfg.tto.steps == 5 and cfg.tto.lr == 1.0 and cfg.tto_config().seed == 3
     assert build_config("cpu", {"tto": None}) == ExtractConfig.preset("cpu")
+    assert build_config("cpu", {"variation": "choose"}).tto_config().select_uniform
     with pytest.raises(ValueError, match="unknown preset"):
         build_config("huge", {})
     with pytest.raises(ValidationError):

@@ -7,6 +7,7 @@ import json
 import math
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,9 @@ from neumatex_core.pipeline import (
     ExtractConfig,
     PipelineError,
     StageProgress,
+    default_work,
     extract,
+    read_done,
     run_stage,
     stage_dir,
 )
@@ -114,6 +117,38 @@ def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp
     out = extract(EXAMPLE / "photos", tmp_path / "asset", config(tiny_lmrm, init="pbr", tto=tto))
     asset = read_asset(out)
     assert asset.basis.basis_id == BASIS_V2 != load_basis().basis_id
+
+
+def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice(tmp_path, tiny_lmrm, capsys):
+    """ExtractConfig.variation: "textured" is the presets' TTO config, "uniform" adds the base colours' values to
+    the consistency term, "choose" makes the TTO pick one on held-out photos, and the report says which it chose
+    and why. It needs the PBR start: with another init it is refused (by `neumatex extract` too), not ignored."""
+    from neumatex_core.tto.config import UNIFORM_RHO_VALUE
+
+    base = config(tiny_lmrm, init="pbr")
+    assert config(tiny_lmrm, init="pbr", variation="textured").tto_config() == base.tto_config()
+    assert base.tto_config().consistency_rho_value == 0.0 and not base.tto_config().select_uniform
+    uniform = config(tiny_lmrm, init="pbr", variation="uniform").tto_config()
+    assert uniform == replace(base.tto_config(), consistency_rho_value=UNIFORM_RHO_VALUE)
+    choose = config(tiny_lmrm, init="pbr", variation="choose")
+    assert choose.tto_config() == replace(base.tto_config(), select_uniform=True)
+    for init in ("random", "lmrm"):
+        with pytest.raises(ValueError, match="variation='uniform'"):
+            config(tiny_lmrm, init=init, variation="uniform").check()
+    assert main(["extract", str(EXAMPLE / "photos"), "--out", str(tmp_path / "x"), "--preset", "tiny", "--init",
+                 "random", "--variation", "uniform", "--no-progress"]) == 2  # fmt: skip
+    assert "variation='uniform'" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+    seen: list[StageProgress] = []
+    out = extract(EXAMPLE, tmp_path / "asset", choose, seen.append)
+    total = choose.tto_config().run_steps()  # the choice's steps, then the TTO's: one progress bar
+    steps = [round(p.fraction * total) for p in seen if p.stage == "tto" and "step" in p.metrics]
+    assert steps == list(range(1, total + 1))
+    tto = read_done(default_work(out), "tto")
+    assert tto["variation"] == "choose" and tto["uniform_kept"] in (0.0, 1.0) and tto["validation_photos"] == 4
+    chosen = "uniform" if tto["uniform_kept"] else "textured"
+    page = (out / "report" / "index.html").read_text()
+    assert f"material variation choose ({chosen} chosen on 4 held-out photos: uniform " in page
 
 
 def test_bad_capture_raises_a_pipeline_error_naming_the_file(tmp_path, tiny_lmrm):

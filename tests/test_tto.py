@@ -419,6 +419,45 @@ def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(e
         replace(cfg, reg="none").check()
 
 
+def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(example, truth_prediction,
+                                                                                tmp_path):
+    """select_uniform: the same choice as select_anchor, between one uniform material (the consistency term with the
+    base colours' values too, consistency_rho_value UNIFORM_RHO_VALUE) and the term as configured ("textured");
+    uniform, the more constrained, is kept unless textured gains more than the margin, and the result is then bit
+    for bit the plain TTO with the chosen config. The progress counts every step the choice runs
+    (TTOConfig.run_steps)."""
+    from neumatex_core.tto import solve
+    from neumatex_core.tto.config import UNIFORM_RHO_VALUE
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True,
+                           select_margin_db=100.0)  # fmt: skip
+    cfg.check()
+    assert cfg.run_steps() == 3 * 4 + 2 * 4 and cfg.total_steps() == 8
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2),
+            example.basis)  # fmt: skip
+    steps: list[int] = []
+    kept = solve(cfg, *args, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
+    assert steps == list(range(1, cfg.run_steps() + 1)) and kept.finished
+    assert {p.name for p in tmp_path.iterdir()} >= {"select_pbr.pt", "select_uniform.pt", "select_textured.pt"}
+    sel = kept.selection
+    assert sel["uniform_kept"] == 1.0 and sel["validation_photos"] == 4.0
+    assert math.isfinite(sel["validation_psnr_uniform"]) and math.isfinite(sel["validation_psnr_textured"])
+    textured = replace(cfg, select_uniform=False)
+    uniform = replace(textured, consistency_rho_value=UNIFORM_RHO_VALUE)
+    assert torch.equal(kept.params.tensor, solve(uniform, *args).params.tensor)
+    chose_textured = solve(replace(cfg, select_margin_db=-100.0), *args)
+    assert chose_textured.selection["uniform_kept"] == 0.0
+    assert chose_textured.selection["validation_psnr_textured"] == pytest.approx(sel["validation_psnr_textured"],
+                                                                                 abs=1e-6)  # fmt: skip
+    plain_textured = solve(textured, *args)
+    assert torch.equal(chose_textured.params.tensor, plain_textured.params.tensor)
+    assert not torch.equal(plain_textured.params.tensor, kept.params.tensor)  # the base colours' values did change it
+    for bad in (dict(lambda_consistency=0.0), dict(init="lmrm", reg="none"), dict(select_anchor=True, lambda_reg=1.0)):
+        with pytest.raises(ValueError, match="select_uniform"):
+            replace(cfg, **bad).check()
+
+
 def test_bsdf_refinement_recovers_what_the_encoder_conversion_loses(example, truth_prediction):
     """The encoder conversion (pbr_to_neural) of a rough grey metal keeps ~60% of its albedo in the shipped basis;
     the BSDF-space refinement of the start (refine_to_pbr_bsdf) brings the neural material's hemispherical albedo

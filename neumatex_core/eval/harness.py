@@ -126,12 +126,14 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     t0, c0 = time.perf_counter(), time.process_time()
     params: Parametrisation | None = None
     scene_mesh = mesh
+    choice: dict[str, float] = {}
     if tto is not None:
         photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
                           [cap.load_mask(i) for i in range(len(cap.frames))], exposure=cap.exposures)  # fmt: skip
         truth = truth_lookup(gt) if tto.reg == "oracle" else None
         result = solve(tto, mesh, env, photos, cap.tonemap, pred, load_basis(basis_id=tto.basis), truth=truth)
         params, scene_mesh = result.params, result.mesh or mesh
+        choice = {f"choice_{k}": v for k, v in result.selection.items()}  # select_anchor / select_uniform's record
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     basis = load_basis()
     from neumatex_core.fields.neural_field import TriplaneMaterialField
@@ -140,7 +142,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     gfn = _gbuffer_fn(params, pred, gt, scene_mesh)
     scores = gbuffer_psnr(gfn, gt)
     path = _render_psnr(object_dir, field, render_views, render_spp, render_bounces, config.seed, scene_mesh)
-    out = {**scores, "psnr_pathtrace": path, "tto_minutes": seconds / 60, "tto_cpu_minutes": cpu / 60}
+    out = {**scores, "psnr_pathtrace": path, "tto_minutes": seconds / 60, "tto_cpu_minutes": cpu / 60, **choice}
     if relight_views:
         out["psnr_relight"] = _relight_psnr(object_dir, field, relight_views, render_spp, render_bounces, config.seed,
                                             scene_mesh)  # fmt: skip

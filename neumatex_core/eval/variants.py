@@ -25,7 +25,8 @@ start's values but with the consistency term (`lambda_consistency`): points that
 latent or the base colour alone, the other by its change), against the anchored recipe at 400 and 1000 steps;
 outside the tables (item 35): the default's weight at 0.03 and 0.3, the default with the base colour's or the
 latent's values compared too (`consistency_rho_value`, `consistency_latent_value`), with a wider sigma, in bases v3
-and v4, and with twice the PBR phase.
+and v4, and with twice the PBR phase; the default or the base colour's values at 0.3 chosen on held-out photos
+(`select_uniform`, item 36).
 """
 
 from __future__ import annotations
@@ -80,6 +81,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_consistent_rho_01": {**CONSISTENT_01, "consistency_rho_value": 1.0},
     "pbr_start_consistent_rho_03": {**CONSISTENT_01, "consistency_rho_value": 3.0},
     "pbr_start_consistent_rho_1": {**CONSISTENT_01, "consistency_rho_value": 10.0},
+    # the default or _rho_03 (one uniform material), chosen on held-out photos (`select_uniform`, the extraction's
+    # variation "choose"; docs/design-notes.md item 36)
+    "pbr_start_consistent_select_uniform": {**CONSISTENT_01, "select_uniform": True},
     # the default with the latent's values compared too, at 0.1 / 0.3 absolute
     "pbr_start_consistent_lat_01": {**CONSISTENT_01, "consistency_latent_value": 1.0},
     "pbr_start_consistent_lat_03": {**CONSISTENT_01, "consistency_latent_value": 3.0},

@@ -40,6 +40,10 @@ MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
 PRESETS = ("tiny", "cpu", "gpu")
 BIG = 1 << 24
+# consistency_rho_value of the "uniform" variation (one material over the whole object): on the Cycles captures,
+# sheen relit - PBR +2.09 dB, coat +3.71 (without it +1.26, +2.98); on textured objects it costs 1.2-1.8 dB
+# (docs/design-notes.md item 35)
+UNIFORM_RHO_VALUE = 3.0
 # The allowed values of the numeric fields (checked by TTOConfig.check; the job service's bounds).
 RANGES: dict[str, Range] = {
     "steps": Range(1, 100_000), "pixels": Range(1, 1 << 20), "spp": Range(1, 4096), "max_bounces": Range(1, 64),
@@ -130,6 +134,11 @@ class TTOConfig:
     select_anchor: bool = False
     validation_photos: int = 4
     select_margin_db: float = 0.25
+    # init "pbr", lambda_consistency > 0: the same choice between this config with the base colours' values compared
+    # too (consistency_rho_value UNIFORM_RHO_VALUE: one uniform material, whose start carries the capture's light
+    # painted into rho_d) and this config (several materials, or textured); uniform is kept unless textured
+    # reproduces the held-out photos better by more than select_margin_db (docs/design-notes.md item 36)
+    select_uniform: bool = False
     # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
     # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
     # start (consistency_of "change"; "value": end alike), so the neural phase may move a material everywhere at once
@@ -176,6 +185,11 @@ class TTOConfig:
             raise ValueError("TTO select_anchor chooses between the anchor to the PBR start and none: it needs init "
                              f"'pbr', reg 'start' and lambda_reg > 0, got {self.init!r}, {self.reg!r}, "
                              f"{self.lambda_reg}")
+        if self.select_uniform and (self.init != "pbr" or self.lambda_consistency <= 0 or self.select_anchor):
+            raise ValueError("TTO select_uniform chooses whether the consistency term also compares base colours: it "
+                             f"needs init 'pbr' and lambda_consistency > 0, without select_anchor; got init "
+                             f"{self.init!r}, lambda_consistency {self.lambda_consistency}, select_anchor "
+                             f"{self.select_anchor}")
         if self.lambda_consistency > 0 and self.reg in ("uncertainty", "oracle"):
             raise ValueError(f"TTO lambda_consistency compares each point's change from the PBR start: it needs reg "
                              f"'start', got {self.reg!r}")
@@ -192,6 +206,12 @@ class TTOConfig:
     def total_steps(self) -> int:
         """Adam steps of the whole TTO: with init "pbr", the PBR phase's and then the neural phase's."""
         return self.steps + (self.pbr_steps if self.init == "pbr" else 0)
+
+    def run_steps(self) -> int:
+        """Adam steps the TTO runs (its progress counts these): total_steps, and with select_anchor or
+        select_uniform first the choice (the PBR phase and two neural phases on all photos but the held-out ones)."""
+        choice = self.pbr_steps + 2 * self.steps if self.select_anchor or self.select_uniform else 0
+        return choice + self.total_steps()
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -118,8 +118,8 @@ class TTOResult:
     """params: the optimised parametrisation; history: one row per step (step, loss, photo, reg, psnr, lr);
     steps_done of config.steps; finished: False when stopped early; seconds: wall time of this call; mesh: the
     problem's mesh; exposure: with config.photo_exposure, each photo's fitted exposure multiplier on top of its
-    given one (unitless, geometric mean 1; `ExposureFit`), else None; selection: with config.select_anchor, the
-    held-out photos' PSNR (dB) of the anchored and the free result and which was kept (tto/pbr_start.py)."""
+    given one (unitless, geometric mean 1; `ExposureFit`), else None; selection: with config.select_anchor or
+    select_uniform, the held-out photos' PSNR (dB) of the two candidates and which was kept (tto/pbr_start.py)."""
 
     params: Parametrisation
     history: list[dict[str, float]] = field(default_factory=list)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -35,7 +35,7 @@ from neumatex_core.materials.pbr import PBRMaterial
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
-from neumatex_core.tto.config import TTOConfig
+from neumatex_core.tto.config import UNIFORM_RHO_VALUE, TTOConfig
 from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.loss import Anchor, photometric_loss
 from neumatex_core.tto.optimise import Progress, Truth, TTOResult, build_problem, optimise
@@ -46,7 +46,7 @@ FIT_STEPS = 1500  # the default of TTOConfig.pbr_fit_steps
 FIT_LR = 0.05
 BSDF_FIT_BATCH = 4096  # surface points per step of `refine_to_pbr_bsdf`, one (wi, wo) pair each
 BSDF_FIT_LR = 0.02
-VALIDATION_SPP = 32  # path samples per held-out pixel when select_anchor scores the two results (two halves)
+VALIDATION_SPP = 32  # path samples per held-out pixel when a choice scores the two results (two halves)
 VALIDATION_RAYS = 1 << 16  # rays per chunk of that render
 VALIDATION_NEIGHBOUR_DEG = 30.0  # a held-out photo needs a fitted one within this angle (the orbit's step is 21)
 
@@ -139,9 +139,9 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
     if config.init != "pbr":
         problem = build_problem(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
         return optimise(problem, config, progress, should_stop, checkpoint("checkpoint.pt"))
-    if config.select_anchor:
-        return _solve_selecting_anchor(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
-                                       truth, progress, should_stop, checkpoint_dir)  # fmt: skip
+    if config.select_anchor or config.select_uniform:
+        return _solve_selecting(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth,
+                                progress, should_stop, checkpoint_dir)  # fmt: skip
     total = config.total_steps()
     first = _pbr_phase(config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
                        _offset(progress, 0, total, 0.0), should_stop, checkpoint("checkpoint_pbr.pt"))
@@ -168,7 +168,7 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
     # The phases start from the LMRM's structure (its PBR head; its triplane, refitted below). config.basis only
     # named the basis the caller loaded (`basis`), so the phases drop it: LMRM-shaped starts are theirs by design.
     pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="",
-                         select_anchor=False)
+                         select_anchor=False, select_uniform=False)
     pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     return optimise(pbr_problem, pbr_config, progress, should_stop, checkpoint)
 
@@ -181,7 +181,8 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
     (anchored to that start with weight config.lambda_reg when reg is "start"). The history holds both phases."""
     # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
-                            lr=config.lr * config.neural_lr_scale, select_anchor=False)
+                            lr=config.lr * config.neural_lr_scale, select_anchor=False,
+                            select_uniform=False)
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
@@ -202,17 +203,18 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
 
 def validation_frames(cameras: Sequence[Camera], k: int, centre: np.ndarray,
                       neighbour_deg: float = VALIDATION_NEIGHBOUR_DEG) -> list[int]:
-    """Up to k photo indices (sorted) held out by `select_anchor`: spread over the capture (every (count / k)-th
-    photo, from the middle of the first stride; a slot that fails moves on to the next index), each seen from
-    within neighbour_deg of it by a photo that stays in the fit (directions from `centre` [3], the object's
-    centre, to the cameras). So the held-out photos test how the fit reproduces surface it saw from nearby, not
-    how either result extrapolates to surface no fitted photo shows: the preset views' bottom view (-Y) sees the
-    underside alone, and holding it out made that extrapolation, where the anchor always wins, decide the choice
-    (docs/design-notes.md, item 32). ValueError when no photo has such a neighbour, or fewer than k + 1 photos."""
+    """Up to k photo indices (sorted) held out by `select_anchor` / `select_uniform`: spread over the capture
+    (every (count / k)-th photo, from the middle of the first stride; a slot that fails moves on to the next
+    index), each seen from within neighbour_deg of it by a photo that stays in the fit (directions from `centre`
+    [3], the object's centre, to the cameras). So the held-out photos test how the fit reproduces surface it saw
+    from nearby, not how either result extrapolates to surface no fitted photo shows: the preset views' bottom view
+    (-Y) sees the underside alone, and holding it out made that extrapolation, where the anchor always wins, decide
+    the choice (docs/design-notes.md, item 32). ValueError when no photo has such a neighbour, or fewer than k + 1
+    photos."""
     count = len(cameras)
     if count <= k:
-        raise ValueError(f"TTO select_anchor holds out {k} photos to choose the anchor, but the capture has only "
-                         f"{count}; lower validation_photos or turn select_anchor off")
+        raise ValueError(f"TTO select_anchor / select_uniform holds out {k} photos to choose, but the capture has "
+                         f"only {count}; lower validation_photos or turn the choice off")
     dirs = np.stack([c.position - centre for c in cameras])
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True).clip(1e-12)
     near = dirs @ dirs.T >= math.cos(math.radians(neighbour_deg))  # [F, F] within the angle (itself included)
@@ -227,8 +229,9 @@ def validation_frames(cameras: Sequence[Camera], k: int, centre: np.ndarray,
                 held = trial
                 break
     if not held:
-        raise ValueError(f"TTO select_anchor needs held-out photos seen from within {neighbour_deg:g} degrees by "
-                         f"another photo, and none of the capture's {count} is; turn select_anchor off")
+        raise ValueError(f"TTO select_anchor / select_uniform needs held-out photos seen from within "
+                         f"{neighbour_deg:g} degrees by another photo, and none of the capture's {count} is; turn "
+                         "the choice off")
     return sorted(held)
 
 
@@ -255,40 +258,66 @@ def photo_psnr(params: Parametrisation, mesh: Mesh, envmap: EnvironmentMap, phot
     return 10 * math.log10(1 / max(total / photos.size, 1e-12))
 
 
-def _solve_selecting_anchor(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
-                            tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool,
-                            truth: Truth | None, progress: Progress | None, should_stop: Callable[[], bool] | None,
-                            checkpoint_dir: Path | None) -> TTOResult:
-    """config.select_anchor. First the choice: both phases on all photos but `validation_frames`, the neural phase
-    with the anchor (config.lambda_reg) and without it, each result scored on the held-out photos (`photo_psnr`,
-    one seed for both); the anchor stays unless dropping it gains more than config.select_margin_db. Then the TTO
-    with that choice on every photo, so the result is exactly what the plain TTO with the chosen weight gives (the
-    held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB). Its `selection`
-    records both scores and the choice."""
+@dataclass(frozen=True)
+class Choice:
+    """One of the choices `_solve_selecting` makes between two candidate configs made from the config (select flags
+    off): `candidates` builds them, the more constrained first; the first is kept unless the second reproduces the
+    held-out photos better by more than select_margin_db (a freer fit must earn its freedom on photos it did not
+    fit). `names` label them in checkpoints and the selection record, whose `kept_key` is 1 when the first was kept."""
+
+    names: tuple[str, str]
+    candidates: Callable[[TTOConfig], tuple[TTOConfig, TTOConfig]]
+    kept_key: str
+
+
+CHOICES = {
+    # the anchor to the start's values (config.lambda_reg), or none
+    "select_anchor": Choice(("anchored", "free"), lambda c: (c, replace(c, lambda_reg=0.0)), "anchor_kept"),
+    # one uniform material (the base colours' values compared too), or the consistency term as configured
+    "select_uniform": Choice(("uniform", "textured"),
+                             lambda c: (replace(c, consistency_rho_value=UNIFORM_RHO_VALUE), c), "uniform_kept"),
+}
+
+
+def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
+                     prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool, truth: Truth | None,
+                     progress: Progress | None, should_stop: Callable[[], bool] | None,
+                     checkpoint_dir: Path | None) -> TTOResult:
+    """config.select_anchor (the anchor to the start, config.lambda_reg, or none) or config.select_uniform (one
+    uniform material: the consistency term with the base colours' values too, or the term as configured; `CHOICES`).
+    First the choice: both phases on all photos but `validation_frames`, the neural phase with either candidate,
+    each result scored on the held-out photos (`photo_psnr`, one seed for both); the first (more constrained)
+    candidate stays unless the second gains more than config.select_margin_db. Then the TTO with that choice on
+    every photo, so the result is exactly what the plain TTO with the chosen config gives (the held-out photos cost
+    the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB). Its `selection` records both scores
+    and the choice."""
     checkpoint = partial(_checkpoint, checkpoint_dir)
+    switch = "select_anchor" if config.select_anchor else "select_uniform"
+    choice = CHOICES[switch]
+    candidates = choice.candidates(replace(config, select_anchor=False, select_uniform=False))
     held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
     fit = [i for i in range(photos.count) if i not in held_out]
     fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
-    total = 2 * config.pbr_steps + 3 * config.steps
-    first = _pbr_phase(config, mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
+    total = config.run_steps()
+    first = _pbr_phase(candidates[0], mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
                        _offset(progress, 0, total, 0.0), should_stop, checkpoint("select_pbr.pt"))
     if not first.finished:
         return first
     scores = []
-    for k, weight in enumerate((config.lambda_reg, 0.0)):
-        result = _neural_phase(replace(config, lambda_reg=weight), first, mesh, envmap, fit_photos, tonemap,
-                               prediction, basis, anchor_available, truth,
-                               _offset(progress, config.pbr_steps + k * config.steps, total, 1.0), should_stop,
-                               checkpoint(f"select_{('anchored', 'free')[k]}.pt"))  # fmt: skip
+    for k, candidate in enumerate(candidates):
+        step0 = config.pbr_steps + k * config.steps
+        result = _neural_phase(candidate, first, mesh, envmap, fit_photos, tonemap, prediction, basis,
+                               anchor_available, truth, _offset(progress, step0, total, 1.0), should_stop,
+                               checkpoint(f"select_{choice.names[k]}.pt"))  # fmt: skip
         if not result.finished:
             return result
         scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
                                  config.seed + 1))  # fmt: skip
     keep = scores[1] <= scores[0] + config.select_margin_db
-    chosen = replace(config, select_anchor=False, lambda_reg=config.lambda_reg if keep else 0.0)
     done = config.pbr_steps + 2 * config.steps
-    final = solve(chosen, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth,
-                  _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)
-    final.selection = {"validation_psnr_anchored": scores[0], "validation_psnr_free": scores[1],
-                       "anchor_kept": float(keep), "validation_photos": float(len(held_out))}
+    final = solve(candidates[0 if keep else 1], mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
+                  truth, _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
+    final.selection = {f"validation_psnr_{choice.names[0]}": scores[0],
+                       f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(keep),
+                       "validation_photos": float(len(held_out))}  # fmt: skip
     return final

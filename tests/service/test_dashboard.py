@@ -300,6 +300,13 @@ def test_browser_upload_zip_and_watch_live_progress(tab: Page, service: Service,
     page.wait_for_selector("#up-status[data-state=error]")
     assert "not valid JSON" in page.inner_text("#up-status")
     page.fill("#up-config", json.dumps(TINY))
+    page.select_option("#up-variation", "uniform")  # goes into the config: with TINY's random init it is refused
+    page.click("#up-submit")
+    page.wait_for_selector("#up-status[data-state=error]")
+    assert "variation='uniform'" in page.inner_text("#up-status")
+    assert [e for e in tab.errors if "422" in e] and all("422" in e for e in tab.errors)  # the browser logs it
+    tab.errors.clear()
+    page.select_option("#up-variation", "textured")
     page.click("#up-submit")
     page.wait_for_selector("#up-status[data-state=created]", timeout=60_000)
     jid = page.get_attribute("#up-status", "data-job")
