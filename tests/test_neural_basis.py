@@ -275,7 +275,9 @@ def test_a_larger_latent_starts_from_a_trained_basis(tmp_path: Path) -> None:
     wo = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([-0.5, -0.5, 0.1]), dim=-1)
     with torch.no_grad():
         z6, z8 = small.encode(params), big.encode(params)
-        assert torch.equal(z8[:, :6], z6) and z8[:, 6:].abs().max() > 0.01  # fresh rows: the new numbers vary
+        # the old numbers up to float rounding (a wider matmul may sum in another order: bit equality held on one
+        # machine image and not on another); fresh rows: the new numbers vary
+        assert torch.allclose(z8[:, :6], z6, rtol=0, atol=1e-6) and z8[:, 6:].abs().max() > 0.01
         assert torch.allclose(big.bsdf(z8, wi, wo), small.bsdf(z6, wi, wo), rtol=1e-5, atol=1e-7)
         for a, b in zip(big.transmission_reflectance(z8, wo), small.transmission_reflectance(z6, wo), strict=True):
             assert torch.allclose(a, b, atol=1e-6)
