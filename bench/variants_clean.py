@@ -45,10 +45,10 @@ def one(object_dir: str, work: str, variant: str) -> dict[str, Any]:
     torch.set_num_threads(1)
     config = ExtractConfig.preset("cpu", device="cpu")
     scores = evaluate_variant(object_dir, work, variant, config, relight_views=(0, 8, 16))
+    choice = {k: float(v) for k, v in scores.items() if k.startswith("choice_")}  # select_anchor / select_uniform
     return {"object": Path(object_dir).name, "variant": variant,
             "scores": {m: float(scores[m]) for m in (*METRICS, "tto_minutes") if m in scores},
-            **({"choice": {k: float(v) for k, v in scores.items() if k.startswith("choice_")}}
-               if any(k.startswith("choice_") for k in scores) else {})}  # fmt: skip
+            **({"choice": choice} if choice else {})}  # fmt: skip
 
 
 def stored_rows() -> dict[str, dict[str, dict[str, float]]]:

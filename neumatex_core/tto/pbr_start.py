@@ -314,7 +314,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
                                  config.seed + 1))  # fmt: skip
     keep = scores[1] <= scores[0] + config.select_margin_db
-    done = config.pbr_steps + 2 * config.steps
+    done = total - config.total_steps()  # the choice's steps; the chosen TTO's follow
     final = solve(candidates[0 if keep else 1], mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
                   truth, _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
     final.selection = {f"validation_psnr_{choice.names[0]}": scores[0],
