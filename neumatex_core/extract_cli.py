@@ -32,10 +32,11 @@ class ExtractCommandConfig:
         "auto", "start the neural TTO from a PBR fit (pbr: the PBR TTO from the LMRM's PBR head first; the best "
         "measured), from the LMRM's prediction (lmrm) or a random triplane; pbr and lmrm fail without a usable LMRM "
         "checkpoint; auto: pbr when the LMRM checkpoint loads, else random (and says so)")
-    variation: Literal["textured", "uniform", "choose"] = option(
-        "textured", "how the object's material varies over its surface: textured (several materials or textures), "
-        "uniform (one material all over: a coat, a sheen; its base colour is kept even over the surface) or choose "
-        "(both tried, 4 held-out photos decide; ~2.5x the TTO time); needs the PBR start (--init pbr or auto)")
+    variation: Literal["default", "textured", "uniform", "choose"] = option(
+        "default", "how the object's material varies over its surface: choose (both tried, 4 held-out photos decide; "
+        "~2x the TTO time), textured (several materials or textures) or uniform (one material all over: a coat, a "
+        "sheen; its base colour is kept even over the surface); uniform and choose need the PBR start (--init pbr or "
+        "auto; choose is textured without it); default: the extract config's (choose)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
     steps: int = option(0, "TTO steps (0: the preset's)")
     photo_exposure: bool = option(False, "fit each photo's exposure in TTO (hand-held photos; docs/capture-format.md)")
@@ -76,7 +77,8 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
         init = "pbr" if lmrm_available(cfg.device) else "random"
         if init == "random":
             print("note: no usable LMRM checkpoint; starting from a random triplane (--init random)", file=sys.stderr)
-    config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed, variation=cfg.variation)
+    variation = {} if cfg.variation == "default" else {"variation": cfg.variation}
+    config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed, **variation)
     if cfg.steps or cfg.photo_exposure:
         config = replace(config, tto=replace(config.tto, steps=cfg.steps or config.tto.steps,
                                              photo_exposure=cfg.photo_exposure))

@@ -70,8 +70,9 @@ NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_co
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
 # into a uniform material's base colour (Cycles captures, relit - PBR: sheen +2.09, coat +3.71 dB, against +1.26,
-# +2.98 for "textured"), and costs a textured object 1.2-1.8 dB; "choose" runs both on all photos but four and keeps
-# the one that reproduces those better (docs/design-notes.md, items 35 and 36).
+# +2.98 for "textured"), and costs a textured object 1.2-1.8 dB; "choose" (the default since 2026-11-27) tries both
+# on all photos but four and keeps uniform unless textured reproduces those clearly better (docs/design-notes.md,
+# items 35-37). Without a PBR start there is nothing to choose: "choose" is then "textured" (ExtractConfig.tto_config).
 VARIATIONS: dict[str, dict[str, Any]] = {"textured": {}, "uniform": {"consistency_rho_value": UNIFORM_RHO_VALUE},
                                          "choose": {"select_uniform": True}}
 # The allowed values of ExtractConfig's numeric fields (ExtractConfig.check; the job service's bounds).
@@ -114,9 +115,10 @@ class ExtractConfig:
     view_resolution: size of the preset views made by prepare_views (pixels); blend_k: photos blended per pixel
     when views are synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview
     renders; eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); variation: how the
-    object's material varies over its surface, which sets the neural phase's consistency term (init "pbr" only;
-    `VARIATIONS`): "textured" (the default: several materials or textures), "uniform" (one material all over) or
-    "choose" (both tried, held-out photos decide; about 2.5 times the TTO's time); lmrm_weights: an LMRM
+    object's material varies over its surface, which sets the neural phase's consistency term (`VARIATIONS`):
+    "choose" (the default: both tried, held-out photos decide; about twice the TTO's time; "textured" without the
+    PBR start), "textured" (several materials or textures) or "uniform" (one material all over; needs init "pbr");
+    lmrm_weights: an LMRM
     .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or "cuda"; seed: every
     random draw; name: asset name (default: the capture folder's)."""
 
@@ -130,7 +132,7 @@ class ExtractConfig:
     preview_spp: int = 32
     eval_photos: int = 4
     eval_spp: int = 16
-    variation: Literal["textured", "uniform", "choose"] = "textured"
+    variation: Literal["textured", "uniform", "choose"] = "choose"
     lmrm_weights: str = ""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     seed: int = 0
@@ -164,16 +166,22 @@ class ExtractConfig:
         problem = evaluation_only(tto)  # first: the reason that matters to whoever asked for it
         if problem:
             raise ValueError(problem)
-        if self.variation != "textured" and (self.init != "pbr" or self.tto.lambda_consistency <= 0):
+        if self.variation == "uniform" and not self.has_pbr_start():
             raise ValueError(f"config variation={self.variation!r} sets the consistency term of the neural TTO from "
                              f"the PBR start: it needs init 'pbr' and tto.lambda_consistency > 0, got init "
                              f"{self.init!r} and lambda_consistency {self.tto.lambda_consistency}")
         tto.check()
 
+    def has_pbr_start(self) -> bool:
+        """Whether the neural TTO starts from the PBR solution with the consistency term, which the variations set."""
+        return self.init == "pbr" and self.tto.lambda_consistency > 0
+
     def tto_config(self) -> TTOConfig:
-        """The TTO config with this config's init switch, seed and variation; the start anchor (reg "start") only
-        where there is a PBR start (init "pbr"), no anchor otherwise."""
-        tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[self.variation])
+        """The TTO config with this config's init switch, seed and variation ("choose" is "textured" where there is
+        no PBR start); the start anchor (reg "start") only where there is a PBR start (init "pbr"), no anchor
+        otherwise."""
+        variation = "textured" if self.variation == "choose" and not self.has_pbr_start() else self.variation
+        tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[variation])
         return replace(tto, reg="none") if tto.reg == "start" and tto.init != "pbr" else tto
 
     def torch_device(self) -> torch.device:
@@ -713,13 +721,18 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
 
 def _choice_note(tto_metrics: dict[str, Any]) -> str:
     """The report's words for the choice the TTO made on held-out photos (TTOConfig.select_uniform /
-    select_anchor, recorded in the tto stage's metrics), or "" when it made none."""
+    select_anchor, recorded in the tto stage's metrics), that variation "choose" was "textured" for want of a PBR
+    start, or "" when there was no choice."""
     for choice in CHOICES.values():
         if choice.kept_key in tto_metrics:
             a, b = choice.names
+            if not tto_metrics["validation_photos"]:
+                return f" ({choice.names[choice.fallback]}: the capture has no photos to hold out and choose on)"
             return (f" ({a if tto_metrics[choice.kept_key] else b} chosen on {tto_metrics['validation_photos']:.0f} "
                     f"held-out photos: {a} {tto_metrics[f'validation_psnr_{a}']:.2f} dB, {b} "
                     f"{tto_metrics[f'validation_psnr_{b}']:.2f} dB)")
+    if tto_metrics.get("variation") == "choose":
+        return " (textured: without the PBR start there is nothing to choose from)"
     return ""
 
 

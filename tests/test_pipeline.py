@@ -121,20 +121,24 @@ def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp
 
 def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice(tmp_path, tiny_lmrm, capsys):
     """ExtractConfig.variation: "textured" is the presets' TTO config, "uniform" adds the base colours' values to
-    the consistency term, "choose" makes the TTO pick one on held-out photos, and the report says which it chose
-    and why. It needs the PBR start: with another init it is refused (by `neumatex extract` too), not ignored."""
+    the consistency term, "choose" (the default) makes the TTO pick one on held-out photos, and the report says
+    which it chose and why. "uniform" needs the PBR start: with another init it is refused (by `neumatex extract`
+    too), not ignored; "choose" is then "textured", and the report says so."""
     from neumatex_core.tto.config import UNIFORM_RHO_VALUE
 
-    base = config(tiny_lmrm, init="pbr")
-    assert config(tiny_lmrm, init="pbr", variation="textured").tto_config() == base.tto_config()
+    base = config(tiny_lmrm, init="pbr", variation="textured")
     assert base.tto_config().consistency_rho_value == 0.0 and not base.tto_config().select_uniform
     uniform = config(tiny_lmrm, init="pbr", variation="uniform").tto_config()
     assert uniform == replace(base.tto_config(), consistency_rho_value=UNIFORM_RHO_VALUE)
     choose = config(tiny_lmrm, init="pbr", variation="choose")
     assert choose.tto_config() == replace(base.tto_config(), select_uniform=True)
+    assert config(tiny_lmrm, init="pbr") == choose  # the default
     for init in ("random", "lmrm"):
         with pytest.raises(ValueError, match="variation='uniform'"):
             config(tiny_lmrm, init=init, variation="uniform").check()
+        lenient = config(tiny_lmrm, init=init)
+        lenient.check()
+        assert lenient.tto_config() == config(tiny_lmrm, init=init, variation="textured").tto_config()
     assert main(["extract", str(EXAMPLE / "photos"), "--out", str(tmp_path / "x"), "--preset", "tiny", "--init",
                  "random", "--variation", "uniform", "--no-progress"]) == 2  # fmt: skip
     assert "variation='uniform'" in capsys.readouterr().err and not (tmp_path / "x").exists()
@@ -184,7 +188,9 @@ def test_cli_extract_end_to_end_from_photos(tmp_path, capsys):
     assert asset.mesh.num_faces > 0 and asset.material_texture.shape[-1] == 9
     views = json.loads((tmp_path / ".asset.work" / "prepare_views" / "views.json").read_text())
     assert views["source"].startswith("blended from 6 photos")
-    assert (out / "report" / "index.html").read_text().count("<img") >= 3
+    page = (out / "report" / "index.html").read_text()
+    assert page.count("<img") >= 3
+    assert "material variation choose (textured: without the PBR start there is nothing to choose from)" in page
     # Rerunning is a no-op resume; a bad capture is an error message and exit code 2, not a traceback.
     assert main(["extract", str(EXAMPLE / "photos"), "--out", str(out), "--preset", "tiny", "--init", "random",
                  "--no-progress"]) == 0  # fmt: skip
@@ -370,4 +376,7 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    assert variant_config("pbr_start_consistent_01", TTOConfig.preset("cpu")) == extraction
+    assert variant_config("pbr_start_consistent_select_uniform_f05", TTOConfig.preset("cpu")) == extraction
+    textured = replace(extraction, select_uniform=False)  # the default before 2026-11-27's "choose"
+    assert variant_config("pbr_start_consistent_01", extraction) == textured
+    assert ExtractConfig.preset("cpu", variation="textured").tto_config() == textured

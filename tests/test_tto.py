@@ -397,7 +397,7 @@ def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(e
             example.basis)  # fmt: skip
     steps: list[int] = []
     kept = solve(cfg, *args, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
-    assert steps == list(range(1, 21)) and kept.finished
+    assert steps == list(range(1, cfg.run_steps() + 1)) and cfg.run_steps() == 4 + 2 * 2 + 8 and kept.finished
     assert {p.name for p in tmp_path.iterdir()} >= {"select_pbr.pt", "select_anchored.pt", "select_free.pt",
                                                      "checkpoint_pbr.pt", "checkpoint.pt"}  # fmt: skip
     sel = kept.selection
@@ -425,12 +425,12 @@ def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(
     base colours' values too, consistency_rho_value UNIFORM_RHO_VALUE) and the term as configured ("textured");
     uniform, the more constrained, is kept unless textured gains more than the margin, and the result is then bit
     for bit the plain TTO with the chosen config. The progress counts every step the choice runs
-    (TTOConfig.run_steps)."""
+    (TTOConfig.run_steps); select_fraction shortens the candidates' phases and nothing else."""
     from neumatex_core.tto import solve
     from neumatex_core.tto.config import UNIFORM_RHO_VALUE
 
     cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
-                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True,
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=1.0,
                            select_margin_db=100.0)  # fmt: skip
     cfg.check()
     assert cfg.run_steps() == 3 * 4 + 2 * 4 and cfg.total_steps() == 8
@@ -445,7 +445,17 @@ def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(
     assert math.isfinite(sel["validation_psnr_uniform"]) and math.isfinite(sel["validation_psnr_textured"])
     textured = replace(cfg, select_uniform=False)
     uniform = replace(textured, consistency_rho_value=UNIFORM_RHO_VALUE)
-    assert torch.equal(kept.params.tensor, solve(uniform, *args).params.tensor)
+    plain_uniform = solve(uniform, *args)
+    assert torch.equal(kept.params.tensor, plain_uniform.params.tensor)
+    # a shorter choice (select_fraction: each candidate's neural phase runs half the steps) is counted as such and
+    # changes only the candidates, not the TTO with the chosen config that follows
+    short = replace(cfg, select_fraction=0.5)
+    assert short.select_steps() == 2 and short.run_steps() == 4 + 2 * 2 + 8
+    steps.clear()
+    quick = solve(short, *args, progress=lambda s, n, row: steps.append(s))
+    assert steps == list(range(1, short.run_steps() + 1))
+    assert quick.selection["validation_psnr_uniform"] != sel["validation_psnr_uniform"]
+    assert torch.equal(quick.params.tensor, plain_uniform.params.tensor)
     chose_textured = solve(replace(cfg, select_margin_db=-100.0), *args)
     assert chose_textured.selection["uniform_kept"] == 0.0
     assert chose_textured.selection["validation_psnr_textured"] == pytest.approx(sel["validation_psnr_textured"],
@@ -453,6 +463,14 @@ def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(
     plain_textured = solve(textured, *args)
     assert torch.equal(chose_textured.params.tensor, plain_textured.params.tensor)
     assert not torch.equal(plain_textured.params.tensor, kept.params.tensor)  # the base colours' values did change it
+    # a capture too small to hold 4 photos out gets the fallback, textured (what uniform costs a textured object is
+    # the larger risk), and says so
+    few = (args[0], args[1], example.photos.subset([0, 1, 2, 3]), *args[3:])
+    steps.clear()
+    fallback = solve(cfg, *few, progress=lambda s, n, row: steps.append(s))
+    assert fallback.selection == {"uniform_kept": 0.0, "validation_photos": 0.0}
+    assert steps[-1] == cfg.run_steps()  # the progress still ends at 100%
+    assert torch.equal(fallback.params.tensor, solve(textured, *few).params.tensor)
     for bad in (dict(lambda_consistency=0.0), dict(init="lmrm", reg="none"), dict(select_anchor=True, lambda_reg=1.0)):
         with pytest.raises(ValueError, match="select_uniform"):
             replace(cfg, **bad).check()

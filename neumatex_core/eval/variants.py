@@ -83,7 +83,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_consistent_rho_1": {**CONSISTENT_01, "consistency_rho_value": 10.0},
     # the default or _rho_03 (one uniform material), chosen on held-out photos (`select_uniform`, the extraction's
     # variation "choose"; docs/design-notes.md item 36)
-    "pbr_start_consistent_select_uniform": {**CONSISTENT_01, "select_uniform": True},
+    "pbr_start_consistent_select_uniform": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 1.0},
+    # the same choice made after half (the extraction's default since 2026-11-27, design note 37) / a quarter of
+    # the neural steps per candidate (TTOConfig.select_fraction); the TTO with the chosen config is the same
+    "pbr_start_consistent_select_uniform_f05": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5},
+    "pbr_start_consistent_select_uniform_f025": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.25},
     # the default with the latent's values compared too, at 0.1 / 0.3 absolute
     "pbr_start_consistent_lat_01": {**CONSISTENT_01, "consistency_latent_value": 1.0},
     "pbr_start_consistent_lat_03": {**CONSISTENT_01, "consistency_latent_value": 3.0},
@@ -97,7 +101,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_v2_1000": {**OURS, "init": "pbr", "reg": "none", "basis": BASIS_V2, "steps": 1000},
     "pbr_start_anchor_01": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1},
     "pbr_start_anchor_1": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 1.0},
-    "pbr_start_anchor_select": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "select_anchor": True},
+    "pbr_start_anchor_select": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "select_anchor": True,
+                                "select_fraction": 1.0},
     "pbr_start_anchor_01_bsdf": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1, "pbr_bsdf_fit_steps": 300},
     "pbr_start_anchor_01_bsdf_v2": {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.1,
                                     "pbr_bsdf_fit_steps": 300, "basis": BASIS_V2},
@@ -148,11 +153,13 @@ TABLES: dict[str, list[str]] = {
 
 
 # A variant's regulariser is its own: these fields start from TTOConfig's defaults (the paper's uncertainty anchor
-# at its weight, no consistency term), not from the extraction preset `base`, whose regulariser follows the
-# extraction's default (pipeline.NEURAL_FROM_PBR) and changed with it. (From 2026-11-24 to 2026-11-27 the presets'
-# lambda_reg 0.1 reached the variants that do not set their own: "ours", t2c, t2f, t3c, t3d, ours_pbr_start.)
+# at its weight, no consistency term, no choice on held-out photos), not from the extraction preset `base`, whose
+# regulariser follows the extraction's default (pipeline.NEURAL_FROM_PBR, and its variation) and changed with it.
+# (From 2026-11-24 to 2026-11-27 the presets' lambda_reg 0.1 reached the variants that do not set their own: "ours",
+# t2c, t2f, t3c, t3d, ours_pbr_start.)
 REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of",
-                      "consistency_rho_value", "consistency_latent_value")
+                      "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
+                      "select_fraction")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

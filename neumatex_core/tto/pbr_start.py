@@ -268,14 +268,16 @@ class Choice:
     names: tuple[str, str]
     candidates: Callable[[TTOConfig], tuple[TTOConfig, TTOConfig]]
     kept_key: str
+    fallback: int  # the candidate run when the capture has no photos to hold out (validation_frames refuses)
 
 
 CHOICES = {
-    # the anchor to the start's values (config.lambda_reg), or none
-    "select_anchor": Choice(("anchored", "free"), lambda c: (c, replace(c, lambda_reg=0.0)), "anchor_kept"),
-    # one uniform material (the base colours' values compared too), or the consistency term as configured
+    # the anchor to the start's values (config.lambda_reg), or none; without held-out photos the anchored one
+    "select_anchor": Choice(("anchored", "free"), lambda c: (c, replace(c, lambda_reg=0.0)), "anchor_kept", 0),
+    # one uniform material (the base colours' values compared too), or the consistency term as configured; without
+    # held-out photos textured, which costs a uniform object less than uniform costs a textured one
     "select_uniform": Choice(("uniform", "textured"),
-                             lambda c: (replace(c, consistency_rho_value=UNIFORM_RHO_VALUE), c), "uniform_kept"),
+                             lambda c: (replace(c, consistency_rho_value=UNIFORM_RHO_VALUE), c), "uniform_kept", 1),
 }
 
 
@@ -285,36 +287,45 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                      checkpoint_dir: Path | None) -> TTOResult:
     """config.select_anchor (the anchor to the start, config.lambda_reg, or none) or config.select_uniform (one
     uniform material: the consistency term with the base colours' values too, or the term as configured; `CHOICES`).
-    First the choice: both phases on all photos but `validation_frames`, the neural phase with either candidate,
-    each result scored on the held-out photos (`photo_psnr`, one seed for both); the first (more constrained)
-    candidate stays unless the second gains more than config.select_margin_db. Then the TTO with that choice on
-    every photo, so the result is exactly what the plain TTO with the chosen config gives (the held-out photos cost
-    the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB). Its `selection` records both scores
-    and the choice."""
+    First the choice: both phases on all photos but `validation_frames`, the neural phase with either candidate
+    (config.select_steps() steps), each result scored on the held-out photos (`photo_psnr`, one seed for both); the
+    first (more constrained) candidate stays unless the second gains more than config.select_margin_db. Then the TTO
+    with that choice on every photo, so the result is exactly what the plain TTO with the chosen config gives (the
+    held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB). Its `selection`
+    records both scores and the choice. A capture with no photos to hold out gets the choice's fallback candidate
+    (`Choice.fallback`; its selection's validation_photos is 0)."""
     checkpoint = partial(_checkpoint, checkpoint_dir)
     switch = "select_anchor" if config.select_anchor else "select_uniform"
     choice = CHOICES[switch]
     candidates = choice.candidates(replace(config, select_anchor=False, select_uniform=False))
-    held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
+    total = config.run_steps()
+    done = total - config.total_steps()  # the choice's steps; the chosen TTO's follow
+    try:
+        held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
+    except ValueError:  # too few photos, or none with a neighbour: no choice to make, the fallback's plain TTO
+        final = solve(candidates[choice.fallback], mesh, envmap, photos, tonemap, prediction, basis,
+                      anchor_available, truth, _offset(progress, done, total, 2.0), should_stop,
+                      checkpoint_dir)  # fmt: skip
+        final.selection = {choice.kept_key: float(choice.fallback == 0), "validation_photos": 0.0}
+        return final
     fit = [i for i in range(photos.count) if i not in held_out]
     fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
-    total = config.run_steps()
     first = _pbr_phase(candidates[0], mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
                        _offset(progress, 0, total, 0.0), should_stop, checkpoint("select_pbr.pt"))
     if not first.finished:
         return first
     scores = []
+    steps = config.select_steps()
     for k, candidate in enumerate(candidates):
-        step0 = config.pbr_steps + k * config.steps
-        result = _neural_phase(candidate, first, mesh, envmap, fit_photos, tonemap, prediction, basis,
-                               anchor_available, truth, _offset(progress, step0, total, 1.0), should_stop,
+        phase_progress = _offset(progress, config.pbr_steps + k * steps, total, 1.0)
+        result = _neural_phase(replace(candidate, steps=steps), first, mesh, envmap, fit_photos, tonemap, prediction,
+                               basis, anchor_available, truth, phase_progress, should_stop,
                                checkpoint(f"select_{choice.names[k]}.pt"))  # fmt: skip
         if not result.finished:
             return result
         scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
                                  config.seed + 1))  # fmt: skip
     keep = scores[1] <= scores[0] + config.select_margin_db
-    done = total - config.total_steps()  # the choice's steps; the chosen TTO's follow
     final = solve(candidates[0 if keep else 1], mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
                   truth, _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
     final.selection = {f"validation_psnr_{choice.names[0]}": scores[0],

@@ -27,9 +27,9 @@ this page never stores the key. <code>python -m services create-tenant NAME</cod
 <p><label>name <input id="up-name" size="20" placeholder="from the file"></label>
 <label>preset <select id="up-preset"><option>tiny</option><option selected>cpu</option><option>gpu</option>
 </select></label> <label title="how the material varies over the object: sets the config's variation">material
-<select id="up-variation"><option value="textured" selected>textured (several materials)</option>
-<option value="uniform">one uniform material</option><option value="choose">choose on held-out photos (slower)
-</option></select></label> <label>config (JSON) <input id="up-config" size="48" value="{}" spellcheck="false"></label>
+<select id="up-variation"><option value="" selected>the default: choose on held-out photos</option>
+<option value="textured">textured (several materials)</option><option value="uniform">one uniform material</option>
+</select></label> <label>config (JSON) <input id="up-config" size="48" value="{}" spellcheck="false"></label>
 <button id="up-submit" type="submit">upload and start</button></p>
 <p id="up-status" class="muted" data-state="idle"></p></form></details>
 <p class="controls"><label>state <select id="f-state"><option value="">all</option><option>queued</option>
@@ -159,7 +159,7 @@ $('upload-form').addEventListener('submit',async ev=>{ev.preventDefault();let co
  try{config=JSON.parse($('up-config').value||'{}');if(typeof config!=='object'||Array.isArray(config)||!config)
   throw new Error('it must be a JSON object')}
  catch(e){upStatus('the config is not valid JSON: '+e.message,'error');return}
- if($('up-variation').value!=='textured')config.variation=$('up-variation').value;
+ if($('up-variation').value)config.variation=$('up-variation').value;
  const zip=$('up-zip').files[0],dir=Array.from($('up-dir').files);
  if(!zip&&!dir.length){upStatus('choose a capture zip or folder first','error');return}
  const name=$('up-name').value.trim()||(zip?zip.name.replace(/\.zip$/i,''):(dir[0].webkitRelativePath||'capture')

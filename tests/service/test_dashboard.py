@@ -306,7 +306,7 @@ def test_browser_upload_zip_and_watch_live_progress(tab: Page, service: Service,
     assert "variation='uniform'" in page.inner_text("#up-status")
     assert [e for e in tab.errors if "422" in e] and all("422" in e for e in tab.errors)  # the browser logs it
     tab.errors.clear()
-    page.select_option("#up-variation", "textured")
+    page.select_option("#up-variation", "")  # the default (choose; textured without a PBR start)
     page.click("#up-submit")
     page.wait_for_selector("#up-status[data-state=created]", timeout=60_000)
     jid = page.get_attribute("#up-status", "data-job")
