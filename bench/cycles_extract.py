@@ -10,7 +10,8 @@ Per capture (23 preset views, 8 held-out photos at random poses in photos/, held
 256 spp): the pipeline's validate / prepare_views / lmrm stages, then two TTOs on the preset views through
 `tto.solve`, as `neumatex eval` runs them: the PBR baseline (material "pbr", 400 steps from the LMRM's PBR head) and
 the extraction's default (`ExtractConfig.preset("cpu")`: PBR TTO, then the neural TTO from its solution, with the
-consistency term since 2026-11-27 and anchored to it before). Each is rendered at --spp with our path tracer and
+consistency term since 2026-11-27 and anchored to it before; since the same day its variation "choose": one uniform
+material or textured, chosen on 4 held-out input views). Each is rendered at --spp with our path tracer and
 scored (PSNR after the capture's tonemap, covered pixels) on the held-out photos (capture lighting, unseen poses)
 and on every relit view (unseen lighting). Prints neural - PBR per capture, then per Principled preset the mean over
 captures with its standard error, and writes a JSON line to bench/results/cycles_extract.jsonl. The reference is

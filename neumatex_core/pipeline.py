@@ -118,9 +118,8 @@ class ExtractConfig:
     object's material varies over its surface, which sets the neural phase's consistency term (`VARIATIONS`):
     "choose" (the default: both tried, held-out photos decide; about twice the TTO's time; "textured" without the
     PBR start), "textured" (several materials or textures) or "uniform" (one material all over; needs init "pbr");
-    lmrm_weights: an LMRM
-    .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or "cuda"; seed: every
-    random draw; name: asset name (default: the capture folder's)."""
+    lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or
+    "cuda"; seed: every random draw; name: asset name (default: the capture folder's)."""
 
     preset_name: str = "cpu"
     tto: TTOConfig = field(default_factory=TTOConfig)

@@ -141,9 +141,9 @@ class TTOConfig:
     # reproduces the held-out photos better by more than select_margin_db (docs/design-notes.md item 36)
     select_uniform: bool = False
     # select_anchor / select_uniform: each candidate's neural phase during the choice runs this fraction of `steps`
-    # (the TTO with the chosen config then runs all of them on every photo). At 0.5 (and 0.25) the choice matched the
-    # full-length one on all 8 Cycles captures and the 6 benchmark objects it was measured on, so the results were
-    # bit for bit the same, at 0.8 times the TTO's time (docs/design-notes.md item 37)
+    # (the TTO with the chosen config then runs all of them on every photo). At 0.5 the choice matched the
+    # full-length one on all 8 Cycles captures and 6 benchmark objects, so the results were bit for bit the same, in
+    # 1200 steps instead of 1600 (the demo's TTO 129 s instead of 153 s; docs/design-notes.md item 37)
     select_fraction: float = 0.5
     # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
     # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
