@@ -303,11 +303,35 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     try:
         held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
     except ValueError:  # too few photos, or none with a neighbour: no choice to make, the fallback's plain TTO
-        final = solve(candidates[choice.fallback], mesh, envmap, photos, tonemap, prediction, basis,
-                      anchor_available, truth, _offset(progress, done, total, 2.0), should_stop,
-                      checkpoint_dir)  # fmt: skip
-        final.selection = {choice.kept_key: float(choice.fallback == 0), "validation_photos": 0.0}
-        return final
+        held_out = []
+    chosen, selection = choice.fallback, {choice.kept_key: float(choice.fallback == 0), "validation_photos": 0.0}
+    if held_out:
+        fit = [i for i in range(photos.count) if i not in held_out]
+        fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
+        first = _pbr_phase(candidates[0], mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
+                           _offset(progress, 0, total, 0.0), should_stop, checkpoint("select_pbr.pt"))
+        if not first.finished:
+            return first
+        scores = []
+        steps = config.select_steps()
+        for k, candidate in enumerate(candidates):
+            phase_progress = _offset(progress, config.pbr_steps + k * steps, total, 1.0)
+            result = _neural_phase(replace(candidate, steps=steps), first, mesh, envmap, fit_photos, tonemap,
+                                   prediction, basis, anchor_available, truth, phase_progress, should_stop,
+                                   checkpoint(f"select_{choice.names[k]}.pt"))  # fmt: skip
+            if not result.finished:
+                return result
+            scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
+                                     config.seed + 1))  # fmt: skip
+        keep = scores[1] <= scores[0] + config.select_margin_db
+        chosen = 0 if keep else 1
+        selection = {f"validation_psnr_{choice.names[0]}": scores[0],
+                     f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(keep),
+                     "validation_photos": float(len(held_out))}  # fmt: skip
+    final = solve(candidates[chosen], mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth,
+                  _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
+    final.selection = selection
+    return final
     fit = [i for i in range(photos.count) if i not in held_out]
     fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
     first = _pbr_phase(candidates[0], mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
