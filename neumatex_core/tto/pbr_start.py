@@ -332,27 +332,3 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                   _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
     final.selection = selection
     return final
-    fit = [i for i in range(photos.count) if i not in held_out]
-    fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
-    first = _pbr_phase(candidates[0], mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
-                       _offset(progress, 0, total, 0.0), should_stop, checkpoint("select_pbr.pt"))
-    if not first.finished:
-        return first
-    scores = []
-    steps = config.select_steps()
-    for k, candidate in enumerate(candidates):
-        phase_progress = _offset(progress, config.pbr_steps + k * steps, total, 1.0)
-        result = _neural_phase(replace(candidate, steps=steps), first, mesh, envmap, fit_photos, tonemap, prediction,
-                               basis, anchor_available, truth, phase_progress, should_stop,
-                               checkpoint(f"select_{choice.names[k]}.pt"))  # fmt: skip
-        if not result.finished:
-            return result
-        scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
-                                 config.seed + 1))  # fmt: skip
-    keep = scores[1] <= scores[0] + config.select_margin_db
-    final = solve(candidates[0 if keep else 1], mesh, envmap, photos, tonemap, prediction, basis, anchor_available,
-                  truth, _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
-    final.selection = {f"validation_psnr_{choice.names[0]}": scores[0],
-                       f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(keep),
-                       "validation_photos": float(len(held_out))}  # fmt: skip
-    return final
