@@ -110,8 +110,6 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
     mesh = cap.load_mesh()
     photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
                       [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
-    if "recipe" in out and TTOConfig.from_dict(out["recipe"]) != config.tto_config():
-        out.pop("neural", None)  # kept from an extraction default that has changed since: "neural" is run again
     variants = {name: variant_tto(name, config.tto_config()) for name in names if name not in out}
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)
@@ -145,7 +143,8 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
 
 
 def selection_of(result: Any) -> dict[str, Any]:
-    """The TTO's select_anchor / select_uniform record (held-out PSNRs, which result was kept), when it made one."""
+    """The TTO's choices on held-out photos (select_anchor / select_uniform: held-out PSNRs, which result was kept;
+    alternative_basis: the scores that chose the basis), when it made any."""
     return {"selection": result.selection} if result.selection else {}
 
 
@@ -172,6 +171,8 @@ def main() -> int:
     for capture in args.captures:
         kept = args.work / capture.name / "scores.json"
         row = json.loads(kept.read_text()) if kept.is_file() and not args.again else {}
+        if "recipe" in row and TTOConfig.from_dict(row["recipe"]) != ExtractConfig.preset("cpu").tto_config():
+            row.pop("neural", None)  # kept from an extraction default that has changed since: "neural" is run again
         if any(name not in row for name in names):
             row = bench_capture(capture, args.work / capture.name, args.spp, args.max_bounces, args.clean_spp, names,
                                 row)  # fmt: skip

@@ -13,6 +13,11 @@ each variant's mean and its paired difference (mean +- standard error over objec
 PBR baseline `pbr`), with eval/suite.py's `paired_difference`. A baseline's rows come from this file and from
 bench/results/random_pose_e2e.jsonl (its "preset/<variant>" rows: the same harness on the same preset views), the
 latest per object. Needs the objects' references (`neumatex references`).
+
+`--kept-basis-from B` (with --summarise) completes each summarised variant with variant B's row on the objects where
+it has none and bench/results/basis_start.jsonl says the extraction's rule keeps the default basis there: a variant
+that differs from B only by `alternative_basis` gives B's result bit for bit where the basis is kept
+(docs/design-notes.md, item 38), so e.g. the default's table covers objects it was not run on.
 """
 
 from __future__ import annotations
@@ -70,8 +75,25 @@ def stored_rows() -> dict[str, dict[str, dict[str, float]]]:
     return rows
 
 
-def summarise(variants: list[str], against: list[str]) -> int:
+def kept_basis_objects() -> set[str]:
+    """The benchmark objects on which bench/basis_start.py's latest row says the rule keeps the default basis."""
+    takes: dict[str, str] = {}
+    path = RESULTS / "basis_start.jsonl"
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        for row in json.loads(line)["rows"]:
+            takes[Path(row["capture"]).name] = row["takes"]
+    return {o for o, t in takes.items() if t == "default"}
+
+
+def summarise(variants: list[str], against: list[str], kept_basis_from: str = "") -> int:
     stored = stored_rows()
+    if kept_basis_from:
+        kept, source = kept_basis_objects(), stored.get(kept_basis_from, {})
+        for variant in variants:
+            filled = {o: source[o] for o in sorted(kept & set(source)) if o not in stored.get(variant, {})}
+            stored.setdefault(variant, {}).update(filled)
+            print(f"{variant}: {kept_basis_from}'s rows on {len(filled)} objects where the basis is kept "
+                  f"({', '.join(filled)})")
     res: Results = {v: {m: {o: s[m] for o, s in by_object.items() if m in s and np.isfinite(s[m])} for m in METRICS}
                     for v, by_object in stored.items()}  # fmt: skip
     for variant in variants:
@@ -83,7 +105,8 @@ def summarise(variants: list[str], against: list[str]) -> int:
         print("| PSNR, dB | " + " | ".join([variant] + [f"{variant} - {b}" for b in against]) + " |")
         print("|---" * (2 + len(against)) + "|")
         for m in METRICS:
-            cells = [f"{np.mean([s[m] for s in mine.values() if m in s]):.2f}"]
+            values = [s[m] for s in mine.values() if m in s and np.isfinite(s[m])]  # NaN: not scored (another basis)
+            cells = [f"{np.mean(values):.2f} (n={len(values)})" if values else "-"]
             for base in against:
                 mean, se, n = paired_difference(res, variant, base, m)  # the PBR baseline has no latents: n = 0
                 cells.append(f"{mean:+.2f} +- {se:.2f} (n={n})" if n > 1 else "-")
@@ -100,10 +123,12 @@ def main() -> int:
     parser.add_argument("--work", default="runs/bench-variants-clean")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--summarise", action="store_true", help="print the paired table so far and stop")
+    parser.add_argument("--kept-basis-from", default="", help="with --summarise: this variant's rows where the "
+                        "extraction's rule keeps the default basis (bench/results/basis_start.jsonl)")
     args = parser.parse_args()
     variants, against = args.variants.split(","), args.against.split(",")
     if args.summarise:
-        return summarise(variants, against)
+        return summarise(variants, against, args.kept_basis_from)
     data = Path(args.data)
     done = stored_rows()
     jobs = [(str(data / o), str(Path(args.work) / o), v) for v in variants for o in select_objects(data, args.objects)

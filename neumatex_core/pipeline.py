@@ -50,7 +50,7 @@ from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
-from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.materials.neural_basis import BASIS_V4, load_basis
 from neumatex_core.tto.config import PRESETS, UNIFORM_RHO_VALUE, TTOConfig  # extract presets use TTO presets
 from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.pbr_start import CHOICES, solve
@@ -66,7 +66,8 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # it from painting the capture's light onto parts of it. On the Cycles captures (4 meshes, clean, relit - PBR) coat
 # +2.98, sheen +1.26, diffuse +2.11 dB, where the anchor to the start's values (lambda_reg 0.1, the default before)
 # gave +1.91, +0.14 and -0.01 (docs/design-notes.md, items 26 and 34).
-NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1}
+NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
+                                   "alternative_basis": BASIS_V4}
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
 # into a uniform material's base colour (Cycles captures, relit - PBR: sheen +2.09, coat +3.71 dB, against +1.26,
@@ -177,11 +178,13 @@ class ExtractConfig:
 
     def tto_config(self) -> TTOConfig:
         """The TTO config with this config's init switch, seed and variation ("choose" is "textured" where there is
-        no PBR start); the start anchor (reg "start") only where there is a PBR start (init "pbr"), no anchor
-        otherwise."""
+        no PBR start); the start anchor (reg "start") and the alternative basis only where there is a PBR start
+        (init "pbr"), no anchor and the one basis otherwise."""
         variation = "textured" if self.variation == "choose" and not self.has_pbr_start() else self.variation
         tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[variation])
-        return replace(tto, reg="none") if tto.reg == "start" and tto.init != "pbr" else tto
+        if tto.init != "pbr":  # the anchor to the start and the alternative basis's start need the PBR start
+            tto = replace(tto, reg="none" if tto.reg == "start" else tto.reg, alternative_basis="")
+        return tto
 
     def torch_device(self) -> torch.device:
         from neumatex_core.device import resolve_device
@@ -509,7 +512,8 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
     return {**stops, "steps": result.steps_done, "loss": float(np.mean([r["loss"] for r in tail])),
             "psnr_batch": float(np.mean([r["psnr"] for r in tail])), "photo_pixels": photos.size,
             "tto_s": time.perf_counter() - t0, "field": tto.field, "init": tto.init, "reg": tto.reg,
-            "material": tto.material, "variation": config.variation, **result.selection}  # fmt: skip
+            "material": tto.material, "variation": config.variation,
+            "basis": (result.basis or basis).basis_id, **result.selection}  # fmt: skip
 
 
 EXPOSURE_FILE = "exposure.json"  # in the tto stage's folder: the fitted per-photo exposure multipliers
@@ -604,7 +608,8 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
     stage_metrics = {s: read_done(work, s) for s in STAGES[:-1]}
     timings = {f"{s}_s": float(m.get("seconds", 0.0)) for s, m in stage_metrics.items()}
     timings.update({f"{s}_cpu_s": float(m.get("cpu_seconds", 0.0)) for s, m in stage_metrics.items()})
-    basis = load_basis(str(device), tto.basis)
+    # the basis the TTO's result is in: the config's, or the alternative it chose (TTOConfig.alternative_basis)
+    basis = load_basis(str(device), str(stage_metrics["tto"].get("basis", tto.basis)))
     with _open_capture(capture) as cap:
         norm = _normalised(cap, work, device)
         name = config.name or cap.root.name
@@ -706,7 +711,7 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                  + (f" after {tto.pbr_steps} PBR steps" if tto.init == "pbr" else "")
                  + f" of {tto.pixels} pixels x {tto.spp} spp, {tto.max_bounces} bounces; field {tto.field}, "
                  f"init {tto.init}, reg {tto.reg}; material variation {config.variation}"
-                 + _choice_note(stage_metrics["tto"]) + "."]  # fmt: skip
+                 + _choice_note(stage_metrics["tto"]) + _basis_note(stage_metrics["tto"]) + "."]  # fmt: skip
         if not record["trained"]:
             notes.append("No trained LMRM checkpoint was available: the triplane started from random values and the "
                          "TTO ran without the uncertainty regulariser.")  # fmt: skip
@@ -733,6 +738,23 @@ def _choice_note(tto_metrics: dict[str, Any]) -> str:
     if tto_metrics.get("variation") == "choose":
         return " (textured: without the PBR start there is nothing to choose from)"
     return ""
+
+
+def _basis_note(tto_metrics: dict[str, Any]) -> str:
+    """The report's words for the neural basis the TTO ran in and, with TTOConfig.alternative_basis, why (the
+    photo PSNR of the PBR solution and of its start in each basis tried; tto/pbr_start.py `choose_basis`)."""
+    if "basis" not in tto_metrics:
+        return ""
+    note = f"; neural basis {tto_metrics['basis']}"
+    if "basis_switched" not in tto_metrics:
+        return note
+    pbr, own = tto_metrics["basis_pbr_psnr"], tto_metrics["basis_start_psnr"]
+    if tto_metrics["basis_switched"]:
+        return (f"{note}, chosen because the PBR solution ({pbr:.2f} dB on the scoring photos) expressed in it "
+                f"scored {tto_metrics['basis_alternative_psnr']:.2f} dB and in the configured basis {own:.2f} dB")
+    tried = ("basis_alternative_psnr" in tto_metrics
+             and f", the alternative's {tto_metrics['basis_alternative_psnr']:.2f} dB") or ""
+    return f"{note} (the PBR solution {pbr:.2f} dB on the scoring photos, its start in this basis {own:.2f} dB{tried})"
 
 
 _RUNNERS: dict[str, Callable[..., dict[str, Any]]] = {

@@ -108,7 +108,7 @@ def test_stages_are_idempotent_and_resume_after_an_interruption(tmp_path, tiny_l
 def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp_path, tiny_lmrm):
     """TTOConfig.basis: the neural TTO from the PBR solution in basis v2; the asset names v2 and reads back in it.
     A start or anchor from the LMRM (whose latents are the default basis's) is refused with the reason."""
-    from neumatex_core.eval.variants import BASIS_V2
+    from neumatex_core.materials.neural_basis import BASIS_V2
     from neumatex_core.tto.config import TTOConfig
 
     tto = TTOConfig.preset("tiny", steps=4, pbr_steps=4, reg="none", basis=BASIS_V2)
@@ -117,6 +117,27 @@ def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp
     out = extract(EXAMPLE / "photos", tmp_path / "asset", config(tiny_lmrm, init="pbr", tto=tto))
     asset = read_asset(out)
     assert asset.basis.basis_id == BASIS_V2 != load_basis().basis_id
+
+
+def test_the_basis_the_tto_chose_is_the_assets_and_the_report_says_why(tmp_path, tiny_lmrm):
+    """TTOConfig.alternative_basis (every preset: basis v4): where the TTO takes it (forced here by a negative
+    margin), the tto stage records it, the asset is exported in it and the report gives the scores that chose it;
+    where it keeps the configured basis the report says so too. Without the PBR start there is nothing to choose."""
+    from neumatex_core.materials.neural_basis import BASIS_V4
+
+    preset = config(tiny_lmrm, init="pbr", variation="textured")
+    assert preset.tto_config().alternative_basis == BASIS_V4
+    assert config(tiny_lmrm, init="random").tto_config().alternative_basis == ""
+    forced = replace(preset, tto=replace(preset.tto, basis_margin_db=-100.0))
+    out = extract(EXAMPLE, tmp_path / "asset", forced)
+    tto = read_done(default_work(out), "tto")
+    assert tto["basis"] == BASIS_V4 and tto["basis_switched"] == 1.0
+    assert read_asset(out).basis.basis_id == BASIS_V4
+    page = (out / "report" / "index.html").read_text()
+    assert f"neural basis {BASIS_V4}, chosen because the PBR solution (" in page
+    kept = extract(EXAMPLE, tmp_path / "kept", replace(preset, tto=replace(preset.tto, basis_margin_db=100.0)))
+    assert read_done(default_work(kept), "tto")["basis"] == load_basis().basis_id == read_asset(kept).basis.basis_id
+    assert f"neural basis {load_basis().basis_id} (the PBR solution " in (kept / "report" / "index.html").read_text()
 
 
 def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice(tmp_path, tiny_lmrm, capsys):
@@ -216,6 +237,9 @@ def test_evaluate_variant_scores_a_synthetic_object(tmp_path, tiny_lmrm):
     assert set(ours) == {"psnr_basecolor", "psnr_latents", "psnr_pathtrace", "tto_minutes", "tto_cpu_minutes"}
     assert all(math.isfinite(v) for v in ours.values()) and ours["tto_minutes"] > 0
     assert ours["psnr_basecolor"] != base["psnr_basecolor"]  # the TTO moved the material
+    # a result in another basis (here basis v4) has latents that do not compare with the truth's: not scored
+    in_v4 = evaluate_variant(EXAMPLE, work, "pbr_start_v4", cfg, render_views=(0,), render_spp=2)
+    assert math.isnan(in_v4["psnr_latents"]) and math.isfinite(in_v4["psnr_basecolor"])
     with pytest.raises(ValueError, match="unknown variant"):
         evaluate_variant(EXAMPLE, work, "nope", cfg)
 
@@ -376,7 +400,9 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    assert variant_config("pbr_start_consistent_select_uniform_f05", TTOConfig.preset("cpu")) == extraction
-    textured = replace(extraction, select_uniform=False)  # the default before 2026-11-27's "choose"
-    assert variant_config("pbr_start_consistent_01", extraction) == textured
+    assert variant_config("pbr_start_consistent_select_uniform_f05_alt_v4", TTOConfig.preset("cpu")) == extraction
+    textured = replace(extraction, select_uniform=False)
     assert ExtractConfig.preset("cpu", variation="textured").tto_config() == textured
+    # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
+    assert variant_config("pbr_start_consistent_01", extraction) == replace(textured, alternative_basis="")
+    assert variant_config("pbr", extraction).alternative_basis == ""  # type: ignore[union-attr]

@@ -141,6 +141,10 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     field = params.field() if params is not None else TriplaneMaterialField(pred.triplane, pred.material_decoder, basis)
     gfn = _gbuffer_fn(params, pred, gt, scene_mesh)
     scores = gbuffer_psnr(gfn, gt)
+    result_basis = getattr(field, "basis", None)
+    if result_basis is not None and result_basis.basis_id != basis.basis_id:
+        scores["psnr_latents"] = float("nan")  # another basis's latents (TTOConfig.basis, alternative_basis) do not
+        # compare with the truth's, which are the default basis's
     path = _render_psnr(object_dir, field, render_views, render_spp, render_bounces, config.seed, scene_mesh)
     out = {**scores, "psnr_pathtrace": path, "tto_minutes": seconds / 60, "tto_cpu_minutes": cpu / 60, **choice}
     if relight_views:

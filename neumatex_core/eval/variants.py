@@ -34,11 +34,9 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
+from neumatex_core.materials.neural_basis import BASIS_V2, BASIS_V3, BASIS_V4
 from neumatex_core.tto.config import TTOConfig
 
-BASIS_V2 = "nmx-basis-v2-4af9689561fa"  # materials/data/bases/v2.json
-BASIS_V3 = "nmx-basis-v3-5e859f599cbd"  # materials/data/bases/v3.json (docs/design-notes.md, item 30)
-BASIS_V4 = "nmx-basis-v4-2b82d9690606"  # materials/data/bases/v4.json (docs/design-notes.md, item 33)
 OURS: dict[str, Any] = {"field": "triplane", "init": "lmrm", "reg": "uncertainty", "material": "neural"}
 # the extraction's default since 2026-11-27 (docs/design-notes.md, item 34), fixed here so that its variants do not
 # move with pipeline.NEURAL_FROM_PBR
@@ -88,6 +86,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the neural steps per candidate (TTOConfig.select_fraction); the TTO with the chosen config is the same
     "pbr_start_consistent_select_uniform_f05": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5},
     "pbr_start_consistent_select_uniform_f025": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.25},
+    # that choice with basis v4 for the start where the default basis cannot hold the PBR solution
+    # (`alternative_basis`, the extraction's default since 2026-11-27, docs/design-notes.md item 38)
+    "pbr_start_consistent_select_uniform_f05_alt_v4": {**CONSISTENT_01, "select_uniform": True,
+                                                       "select_fraction": 0.5, "alternative_basis": BASIS_V4},
     # the default with the latent's values compared too, at 0.1 / 0.3 absolute
     "pbr_start_consistent_lat_01": {**CONSISTENT_01, "consistency_latent_value": 1.0},
     "pbr_start_consistent_lat_03": {**CONSISTENT_01, "consistency_latent_value": 3.0},
@@ -153,13 +155,14 @@ TABLES: dict[str, list[str]] = {
 
 
 # A variant's regulariser is its own: these fields start from TTOConfig's defaults (the paper's uncertainty anchor
-# at its weight, no consistency term, no choice on held-out photos), not from the extraction preset `base`, whose
-# regulariser follows the extraction's default (pipeline.NEURAL_FROM_PBR, and its variation) and changed with it.
+# at its weight, no consistency term, no choice on held-out photos, one basis), not from the extraction preset
+# `base`, whose regulariser follows the extraction's default (pipeline.NEURAL_FROM_PBR, and its variation) and
+# changed with it.
 # (From 2026-11-24 to 2026-11-27 the presets' lambda_reg 0.1 reached the variants that do not set their own: "ours",
 # t2c, t2f, t3c, t3d, ours_pbr_start.)
 REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of",
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
-                      "select_fraction")
+                      "select_fraction", "alternative_basis", "basis_margin_db")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

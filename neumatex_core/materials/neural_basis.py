@@ -45,6 +45,10 @@ DATA_DIR = Path(__file__).resolve().parent / "data"
 DEFAULT_WEIGHTS = DATA_DIR / "basis.safetensors"
 DEFAULT_RECORD = DATA_DIR / "basis.json"
 EXTRA_DIR = DATA_DIR / "bases"  # further installed bases, found by id
+# The ids of the further installed bases (EXTRA_DIR/<name>.json; docs/design-notes.md items 25, 30 and 33)
+BASIS_V2 = "nmx-basis-v2-4af9689561fa"
+BASIS_V3 = "nmx-basis-v3-5e859f599cbd"
+BASIS_V4 = "nmx-basis-v4-2b82d9690606"
 LATENT_DIM = 6
 N_DIR_FEATURES = 11
 P_COSINE_MIN = 0.1  # the cosine component keeps this share of the sampling mixture (no unreachable direction)

@@ -57,7 +57,7 @@ RANGES: dict[str, Range] = {
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
     "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100),
-    "select_fraction": Range(0, 1, lo_open=True)}  # fmt: skip
+    "select_fraction": Range(0, 1, lo_open=True), "basis_margin_db": Range(-100, 100)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -124,6 +124,13 @@ class TTOConfig:
     # "" = the default neural basis; another installed basis (materials/data/bases/) by id. The LMRM predicts the
     # default basis's latents, so another basis needs a start and an anchor that do not come from it.
     basis: str = ""
+    # init "pbr": another installed basis to start the neural phase in when the PBR solution expressed in `basis`
+    # reproduces the photos worse than PBR itself by more than basis_margin_db and expressed in this one better
+    # than in `basis` by more than basis_margin_db (held-out or spread photos, `photo_psnr`): a basis that cannot
+    # hold the PBR solution cannot begin where PBR ends (Cycles metals: the default basis's start 7 dB below PBR;
+    # tto/pbr_start.py `choose_basis`, docs/design-notes.md item 38)
+    alternative_basis: str = ""
+    basis_margin_db: float = 2.0
     photo_exposure: bool = False
     exposure_lr: float = 0.05
     photo_loss: PhotoLossKind = "l2"
@@ -182,8 +189,13 @@ class TTOConfig:
         if self.init == "pbr" and (self.material != "neural" or self.field != "triplane"):
             raise ValueError("TTO init='pbr' starts a neural triplane from a PBR fit: it needs material='neural' and "
                              f"field='triplane', got {self.material!r} and {self.field!r}")
-        if self.basis and self.basis not in installed_bases():
-            raise ValueError(f"TTO basis={self.basis!r} is not installed (installed: {', '.join(installed_bases())})")
+        for key in ("basis", "alternative_basis"):
+            if getattr(self, key) and getattr(self, key) not in installed_bases():
+                raise ValueError(f"TTO {key}={getattr(self, key)!r} is not installed (installed: "
+                                 f"{', '.join(installed_bases())})")
+        if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
+            raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
+                             f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")
         if self.photo_loss != "l2" and self.spp < 2:
             raise ValueError(f"TTO photo_loss={self.photo_loss!r} pairs each pixel's samples: it needs spp >= 2, "
                              f"got {self.spp}")

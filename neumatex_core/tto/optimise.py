@@ -119,7 +119,8 @@ class TTOResult:
     steps_done of config.steps; finished: False when stopped early; seconds: wall time of this call; mesh: the
     problem's mesh; exposure: with config.photo_exposure, each photo's fitted exposure multiplier on top of its
     given one (unitless, geometric mean 1; `ExposureFit`), else None; selection: with config.select_anchor or
-    select_uniform, the held-out photos' PSNR (dB) of the two candidates and which was kept (tto/pbr_start.py)."""
+    select_uniform, the held-out photos' PSNR (dB) of the two candidates and which was kept, with
+    config.alternative_basis the scores that chose the basis (tto/pbr_start.py)."""
 
     params: Parametrisation
     history: list[dict[str, float]] = field(default_factory=list)
@@ -129,6 +130,9 @@ class TTOResult:
     mesh: Mesh | None = None  # the mesh the field lives on (xatlas-unwrapped for UV fields)
     exposure: list[float] | None = None
     selection: dict[str, float] = field(default_factory=dict)
+    # with config.alternative_basis: the basis the neural material is in when the TTO switched to it (None: the
+    # basis it was given; tto/pbr_start.py `choose_basis`)
+    basis: NeuralBasis | None = None
 
 
 def _neural_gbuffer(prediction: LMRMPrediction, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

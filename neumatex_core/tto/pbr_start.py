@@ -30,7 +30,7 @@ from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRMPrediction
 from neumatex_core.materials.basis_training import log_target, uniform_hemisphere
-from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial
+from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial, load_basis
 from neumatex_core.materials.pbr import PBRMaterial
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
@@ -147,8 +147,16 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
                        _offset(progress, 0, total, 0.0), should_stop, checkpoint("checkpoint_pbr.pt"))
     if not first.finished:
         return first
-    return _neural_phase(config, first, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth,
-                         _offset(progress, config.pbr_steps, total, 1.0), should_stop, checkpoint("checkpoint.pt"))
+    start = choose_basis(config, first, mesh, envmap, photos, photos.subset(spread_frames(photos.count,
+                         config.validation_photos)), tonemap, prediction, basis, anchor_available)  # fmt: skip
+    result = _neural_phase(config, first, mesh, envmap, photos, tonemap, prediction,
+                           basis if start is None else start.basis, anchor_available, truth,
+                           _offset(progress, config.pbr_steps, total, 1.0), should_stop, checkpoint("checkpoint.pt"),
+                           start)  # fmt: skip
+    if start is not None:
+        result.selection = {**result.selection, **start.record}
+        result.basis = start.basis if start.switched else None
+    return result
 
 
 def _checkpoint(checkpoint_dir: Path | None, name: str) -> Path | None:
@@ -168,7 +176,7 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
     # The phases start from the LMRM's structure (its PBR head; its triplane, refitted below). config.basis only
     # named the basis the caller loaded (`basis`), so the phases drop it: LMRM-shaped starts are theirs by design.
     pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="",
-                         select_anchor=False, select_uniform=False)
+                         select_anchor=False, select_uniform=False, alternative_basis="")
     pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     return optimise(pbr_problem, pbr_config, progress, should_stop, checkpoint)
 
@@ -176,19 +184,25 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
 def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
                   tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool,
                   truth: Truth | None, progress: Progress | None, should_stop: Callable[[], bool] | None,
-                  checkpoint: Path | None) -> TTOResult:
-    """Phase two: the neural triplane fitted to the PBR solution `first`, then `config.steps` steps of neural TTO
-    (anchored to that start with weight config.lambda_reg when reg is "start"). The history holds both phases."""
+                  checkpoint: Path | None, start: BasisStart | None = None) -> TTOResult:
+    """Phase two: the neural triplane fitted to the PBR solution `first` (or given that fit, `start`, made in
+    `basis` by `choose_basis`), then `config.steps` steps of neural TTO (anchored to that start with weight
+    config.lambda_reg when reg is "start"). The history holds both phases."""
     # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
                             lr=config.lr * config.neural_lr_scale, select_anchor=False,
-                            select_uniform=False)
+                            select_uniform=False, alternative_basis="")
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
         problem.exposure.start_at(first.exposure)
-    start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
-                                 config.pbr_bsdf_fit_steps)
+    if start is not None and not problem.params.decoder_parameters():
+        with torch.no_grad():
+            problem.params.tensor.copy_(start.planes)
+        start_mse = start.mse
+    else:
+        start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed,
+                                     config.pbr_fit_steps, config.pbr_bsdf_fit_steps)
     if config.reg == "start" and (config.lambda_reg > 0 or config.lambda_consistency > 0):  # weight 1: the start
         points, uv = problem.mesh.sample_surface(config.reg_pool, seed=config.seed)
         points = points.to(problem.params.tensor.device)
@@ -219,9 +233,9 @@ def validation_frames(cameras: Sequence[Camera], k: int, centre: np.ndarray,
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True).clip(1e-12)
     near = dirs @ dirs.T >= math.cos(math.radians(neighbour_deg))  # [F, F] within the angle (itself included)
     held: list[int] = []
-    for slot in range(k):
+    for base in spread_frames(count, k):
         for step in range(count):
-            f = (int((slot + 0.5) * count / k) + step) % count
+            f = (base + step) % count
             trial = held + [f]
             fit = np.ones(count, dtype=bool)
             fit[trial] = False
@@ -256,6 +270,67 @@ def photo_psnr(params: Parametrisation, mesh: Mesh, envmap: EnvironmentMap, phot
             product, _ = photometric_loss(radiance, rays.target, spp, tonemap, rays.exposure, "decorrelated")
             total += float(product) * idx.shape[0]
     return 10 * math.log10(1 / max(total / photos.size, 1e-12))
+
+
+def spread_frames(count: int, k: int) -> list[int]:
+    """Up to k photo indices (sorted) spread over a capture of `count`: every (count / k)-th, from the middle of the
+    first stride."""
+    return sorted({int((slot + 0.5) * count / k) for slot in range(min(k, count))})
+
+
+@dataclass
+class BasisStart:
+    """The neural phase's start that `choose_basis` chose: the planes fitted to the PBR solution in `basis`, their
+    G-buffer error `mse` (`fit_start_to_pbr`), whether `basis` is config.alternative_basis (`switched`) and the
+    scores that chose it (`record`, dB: basis_pbr_psnr, basis_start_psnr, basis_alternative_psnr when the
+    alternative was tried, basis_switched 0 or 1)."""
+
+    basis: NeuralBasis
+    planes: torch.Tensor
+    mse: float
+    switched: bool
+    record: dict[str, float]
+
+
+def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
+                 scoring: PhotoSet, tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis,
+                 anchor_available: bool) -> BasisStart | None:
+    """config.alternative_basis: the basis the neural phase starts in. The PBR solution `first` (fitted on `photos`)
+    is expressed in `basis` (`fit_start_to_pbr`) and both are scored on the photos `scoring` (`photo_psnr`, one
+    seed). The start fits no photo, so photos the PBR phase fitted are fair here. When the start loses more than
+    config.basis_margin_db to PBR, the basis cannot hold the PBR solution (the default basis turns a coloured metal
+    grey: Cycles metals 7 dB below PBR), so the start is also made in the alternative basis, which is taken when it
+    scores better than the start in `basis` by more than basis_margin_db. None without an alternative (or when it
+    is `basis`): the neural phase fits its own start, as before."""
+    if not config.alternative_basis:
+        return None
+    device = str(first.params.tensor.device)
+    alternative = load_basis(device, config.alternative_basis)
+    if alternative.basis_id == basis.basis_id:
+        return None
+    # the neural phase's problem (tto/pbr_start.py `_neural_phase`): same planes to start from, same fit
+    neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
+                            alternative_basis="")
+
+    def start_in(candidate: NeuralBasis) -> tuple[torch.Tensor, float, float]:
+        problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, candidate, anchor_available)
+        assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
+        mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, candidate, config.seed,
+                               config.pbr_fit_steps, config.pbr_bsdf_fit_steps)
+        score = photo_psnr(problem.params, problem.mesh or mesh, envmap, scoring, tonemap, config, config.seed + 1)
+        return problem.params.tensor.detach().clone(), mse, score
+
+    pbr_psnr = photo_psnr(first.params, first.mesh or mesh, envmap, scoring, tonemap, config, config.seed + 1)
+    planes, mse, own = start_in(basis)
+    record = {"basis_pbr_psnr": pbr_psnr, "basis_start_psnr": own}
+    chosen = BasisStart(basis, planes, mse, False, record)
+    if pbr_psnr - own > config.basis_margin_db:
+        other_planes, other_mse, other = start_in(alternative)
+        record["basis_alternative_psnr"] = other
+        if other - own > config.basis_margin_db:
+            chosen = BasisStart(alternative, other_planes, other_mse, True, record)
+    record["basis_switched"] = float(chosen.switched)
+    return chosen
 
 
 @dataclass(frozen=True)
@@ -305,6 +380,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     except ValueError:  # too few photos, or none with a neighbour: no choice to make, the fallback's plain TTO
         held_out = []
     chosen, selection = choice.fallback, {choice.kept_key: float(choice.fallback == 0), "validation_photos": 0.0}
+    start: BasisStart | None = None
     if held_out:
         fit = [i for i in range(photos.count) if i not in held_out]
         fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
@@ -312,13 +388,17 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                            _offset(progress, 0, total, 0.0), should_stop, checkpoint("select_pbr.pt"))
         if not first.finished:
             return first
+        # the basis is chosen once, here, for both candidates and the TTO that follows
+        start = choose_basis(config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction, basis,
+                             anchor_available)  # fmt: skip
         scores = []
         steps = config.select_steps()
         for k, candidate in enumerate(candidates):
             phase_progress = _offset(progress, config.pbr_steps + k * steps, total, 1.0)
             result = _neural_phase(replace(candidate, steps=steps), first, mesh, envmap, fit_photos, tonemap,
-                                   prediction, basis, anchor_available, truth, phase_progress, should_stop,
-                                   checkpoint(f"select_{choice.names[k]}.pt"))  # fmt: skip
+                                   prediction, basis if start is None else start.basis, anchor_available, truth,
+                                   phase_progress, should_stop, checkpoint(f"select_{choice.names[k]}.pt"),
+                                   start)  # fmt: skip
             if not result.finished:
                 return result
             scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
@@ -328,7 +408,14 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         selection = {f"validation_psnr_{choice.names[0]}": scores[0],
                      f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(keep),
                      "validation_photos": float(len(held_out))}  # fmt: skip
-    final = solve(candidates[chosen], mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth,
+    final_config, final_basis = candidates[chosen], basis
+    if start is not None:
+        selection = {**selection, **start.record}
+        final_config = replace(final_config, alternative_basis="",
+                               basis=start.basis.basis_id if start.switched else final_config.basis)
+        final_basis = start.basis
+    final = solve(final_config, mesh, envmap, photos, tonemap, prediction, final_basis, anchor_available, truth,
                   _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
     final.selection = selection
+    final.basis = start.basis if start is not None and start.switched else final.basis
     return final

@@ -1,0 +1,103 @@
+"""How well each installed neural basis holds the PBR solution: the start of the neural TTO in every basis, scored
+on held-out photos against the PBR solution it was fitted to (docs/design-notes.md, item 38).
+
+For every capture (a Cycles capture, runs/cycles/<mesh>-<preset>, or a benchmark object, data/benchmark-test/<id>),
+as the extraction's default does before its neural phase: the PBR phase of the cpu preset on all photos but the 4
+held out (`validation_frames`), then its solution fitted into the neural triplane (`fit_start_to_pbr`, no neural
+step) in each installed basis, and the PBR solution and every start scored on the held-out photos with the clean
+estimator `photo_psnr` (one seed, so all share their random numbers). The extraction's rule
+(`TTOConfig.alternative_basis`, `tto/pbr_start.py` `choose_basis`) takes the alternative basis where the default
+basis's start is more than 2 dB below PBR and the alternative's more than 2 dB above the default's; the last column
+says what it takes. One JSON line per capture in bench/results/basis_start.jsonl (a stopped run keeps the finished
+ones).
+
+    NEUMATEX_SHARED=../shared .venv/bin/python bench/basis_start.py runs/cycles/teapot-{metal,coat} \
+        data/benchmark-test/test-000017        # about 1.5-2.5 minutes per capture on one thread
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import write_result  # noqa: E402
+
+from neumatex_core.capture import load_capture  # noqa: E402
+from neumatex_core.eval.references import harness_envmap  # noqa: E402
+from neumatex_core.materials.neural_basis import installed_bases, load_basis  # noqa: E402
+from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage  # noqa: E402
+from neumatex_core.tto.data import PhotoSet  # noqa: E402
+from neumatex_core.tto.optimise import build_problem  # noqa: E402
+from neumatex_core.tto.params import NeuralTriplane, PBRTriplane  # noqa: E402
+from neumatex_core.tto.pbr_start import _pbr_phase, fit_start_to_pbr, photo_psnr, validation_frames  # noqa: E402
+
+
+def work_dir(capture: Path) -> Path:
+    """The stage folder the other benchmarks keep for this capture (its LMRM prediction is reused)."""
+    root = "runs/bench-variants-clean" if capture.parent.name.startswith("benchmark") else "runs/bench-cycles-extract"
+    return Path(root) / capture.name
+
+
+def score_capture(capture: Path) -> dict[str, Any]:
+    """{"capture", "pbr": dB, <basis id>: dB of its start, "takes": the basis the extraction's rule takes}."""
+    config = ExtractConfig.preset("cpu", device="cpu")
+    work = work_dir(capture)
+    for stage in ("validate", "prepare_views", "lmrm"):
+        run_stage(stage, capture, work, config)
+    pred, _ = load_prediction(work)
+    cap = load_capture(capture)
+    mesh = cap.load_mesh()
+    photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
+                      [cap.load_mask(i) for i in range(len(cap.frames))], exposure=cap.exposures)  # fmt: skip
+    tto, envmap = config.tto_config(), harness_envmap(cap)
+    held = validation_frames(photos.cameras, tto.validation_photos, mesh.bounding_sphere()[0])
+    fit = photos.subset([i for i in range(photos.count) if i not in held])
+    held_photos = photos.subset(held)
+    t0 = time.perf_counter()
+    first = _pbr_phase(tto, mesh, envmap, fit, cap.tonemap, pred, load_basis(), True, None, None, None)
+    row: dict[str, Any] = {"capture": str(capture),
+                           "pbr": photo_psnr(first.params, first.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
+                                             tto.seed + 1)}  # fmt: skip
+    starts = replace(tto, init="lmrm", basis="", reg="none", select_uniform=False, alternative_basis="")
+    for basis_id in installed_bases():
+        basis = load_basis(basis_id=basis_id)
+        problem = build_problem(starts, mesh, envmap, fit, cap.tonemap, pred, basis, True)
+        assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
+        fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, tto.seed, tto.pbr_fit_steps,
+                         tto.pbr_bsdf_fit_steps)  # fmt: skip
+        row[basis_id] = photo_psnr(problem.params, problem.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
+                                   tto.seed + 1)  # fmt: skip
+    own, other, margin = row[load_basis().basis_id], row[tto.alternative_basis], tto.basis_margin_db
+    row["takes"] = tto.alternative_basis if row["pbr"] - own > margin and other - own > margin else "default"
+    row["seconds"] = time.perf_counter() - t0
+    return row
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("captures", nargs="+", type=Path)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    bases = list(installed_bases())
+    print("| capture | PBR | " + " | ".join(b.split("-")[2] for b in bases) + " | the rule takes |")
+    print("|---" * (len(bases) + 3) + "|")
+    for capture in args.captures:
+        row = score_capture(capture)
+        path = write_result("basis_start", {"bases": bases, "rows": [row]})
+        print(f"| {capture.name} | {row['pbr']:.2f} | " + " | ".join(f"{row[b]:.2f}" for b in bases)
+              + f" | {row['takes']} |", flush=True)  # fmt: skip
+    print(f"appended to {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
