@@ -14,10 +14,11 @@ PBR baseline `pbr`), with eval/suite.py's `paired_difference`. A baseline's rows
 bench/results/random_pose_e2e.jsonl (its "preset/<variant>" rows: the same harness on the same preset views), the
 latest per object. Needs the objects' references (`neumatex references`).
 
-`--kept-basis-from B` (with --summarise) completes each summarised variant with variant B's row on the objects where
-it has none and bench/results/basis_start.jsonl says the extraction's rule keeps the default basis there: a variant
-that differs from B only by `alternative_basis` gives B's result bit for bit where the basis is kept
-(docs/design-notes.md, item 38), so e.g. the default's table covers objects it was not run on.
+`--fill-from B,C` (with --summarise) completes each summarised variant on the objects where it has no row with the
+row of the first of B, C, ... whose choice of basis there is the same (`alternative_basis`, docs/design-notes.md item
+38): variants that differ only in it (or in its margin) give the same result bit for bit where they choose the same
+basis. The choice is worked out from the scores of bench/results/basis_start.jsonl and from the basis records of
+this file's rows, so e.g. the default's table covers objects that only a neighbouring variant was run on.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from common import write_result  # noqa: E402
 
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
 from neumatex_core.eval.suite import Results, paired_difference, select_objects  # noqa: E402
+from neumatex_core.eval.variants import variant_config  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig  # noqa: E402
 
 METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor", "psnr_latents")
@@ -75,25 +77,54 @@ def stored_rows() -> dict[str, dict[str, dict[str, float]]]:
     return rows
 
 
-def kept_basis_objects() -> set[str]:
-    """The benchmark objects on which bench/basis_start.py's latest row says the rule keeps the default basis."""
-    takes: dict[str, str] = {}
+def basis_scores() -> dict[str, dict[str, float]]:
+    """object -> the basis choice's scores there (dB: pbr, start in the default basis, start in the alternative when
+    known): bench/results/basis_start.jsonl's rows (v4 as the alternative), then this file's basis records."""
+    scores: dict[str, dict[str, float]] = {}
     path = RESULTS / "basis_start.jsonl"
     for line in path.read_text().splitlines() if path.is_file() else []:
         for row in json.loads(line)["rows"]:
-            takes[Path(row["capture"]).name] = row["takes"]
-    return {o for o, t in takes.items() if t == "default"}
+            default = next(k for k in row if k.startswith("nmx-basis-v1"))
+            scores[Path(row["capture"]).name] = {"pbr": row["pbr"], "own": row[default],
+                                                 "alternative": row["nmx-basis-v4-2b82d9690606"]}  # fmt: skip
+    own = RESULTS / "variants_clean.jsonl"
+    for line in own.read_text().splitlines() if own.is_file() else []:
+        c = json.loads(line).get("choice", {})
+        if "choice_basis_pbr_psnr" in c:
+            known = scores.setdefault(json.loads(line)["object"], {})
+            known.update({"pbr": c["choice_basis_pbr_psnr"], "own": c["choice_basis_start_psnr"]})
+            if "choice_basis_alternative_psnr" in c:
+                known["alternative"] = c["choice_basis_alternative_psnr"]
+    return scores
 
 
-def summarise(variants: list[str], against: list[str], kept_basis_from: str = "") -> int:
+def basis_choice(variant: str, known: dict[str, float] | None) -> str | None:
+    """"default" or the alternative basis `variant` starts its neural phase in, given the scores `known`; None when
+    they do not tell (`tto/pbr_start.py` `choose_basis`)."""
+    tto = variant_config(variant, ExtractConfig.preset("cpu").tto)
+    if tto is None or not tto.alternative_basis:
+        return "default"
+    if not known or "pbr" not in known:
+        return None
+    if known["pbr"] - known["own"] <= tto.basis_margin_db:
+        return "default"
+    if "alternative" not in known:
+        return None
+    return tto.alternative_basis if known["alternative"] - known["own"] > tto.basis_margin_db else "default"
+
+
+def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None) -> int:
     stored = stored_rows()
-    if kept_basis_from:
-        kept, source = kept_basis_objects(), stored.get(kept_basis_from, {})
-        for variant in variants:
-            filled = {o: source[o] for o in sorted(kept & set(source)) if o not in stored.get(variant, {})}
-            stored.setdefault(variant, {}).update(filled)
-            print(f"{variant}: {kept_basis_from}'s rows on {len(filled)} objects where the basis is kept "
-                  f"({', '.join(filled)})")
+    scores = basis_scores()
+    for variant in variants if fill_from else []:
+        mine = stored.setdefault(variant, {})
+        for o in sorted(set().union(*(stored.get(b, {}) for b in fill_from)) - set(mine)):
+            wanted = basis_choice(variant, scores.get(o))
+            source = next((b for b in fill_from if o in stored.get(b, {}) and wanted is not None
+                           and basis_choice(b, scores.get(o)) == wanted), None)  # fmt: skip
+            if source is not None:
+                mine[o] = stored[source][o]
+                print(f"{variant} on {o}: {source}'s row (basis: {wanted})")
     res: Results = {v: {m: {o: s[m] for o, s in by_object.items() if m in s and np.isfinite(s[m])} for m in METRICS}
                     for v, by_object in stored.items()}  # fmt: skip
     for variant in variants:
@@ -123,12 +154,12 @@ def main() -> int:
     parser.add_argument("--work", default="runs/bench-variants-clean")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--summarise", action="store_true", help="print the paired table so far and stop")
-    parser.add_argument("--kept-basis-from", default="", help="with --summarise: this variant's rows where the "
-                        "extraction's rule keeps the default basis (bench/results/basis_start.jsonl)")
+    parser.add_argument("--fill-from", default="", help="with --summarise: comma-separated variants whose rows stand "
+                        "in where they choose the same basis (see above)")
     args = parser.parse_args()
     variants, against = args.variants.split(","), args.against.split(",")
     if args.summarise:
-        return summarise(variants, against, args.kept_basis_from)
+        return summarise(variants, against, [v for v in args.fill_from.split(",") if v])
     data = Path(args.data)
     done = stored_rows()
     jobs = [(str(data / o), str(Path(args.work) / o), v) for v in variants for o in select_objects(data, args.objects)

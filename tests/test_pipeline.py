@@ -400,7 +400,8 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    assert variant_config("pbr_start_consistent_select_uniform_f05_alt_v4", TTOConfig.preset("cpu")) == extraction
+    default = variant_config("pbr_start_consistent_select_uniform_f05_alt_v4_m3", TTOConfig.preset("cpu"))
+    assert default == extraction
     textured = replace(extraction, select_uniform=False)
     assert ExtractConfig.preset("cpu", variation="textured").tto_config() == textured
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis

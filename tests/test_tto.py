@@ -576,7 +576,8 @@ def _pbr_scene(example: Example, prediction: LMRMPrediction, values: list[float]
     views = (0, 4, 8, 12, 17, 19)
     cams = [example.photos.cameras[v] for v in views]
     with torch.no_grad():
-        images = [example.capture.tonemap.apply(tracer.render(scene, c, seed=v)).numpy() for v, c in zip(views, cams)]
+        images = [example.capture.tonemap.apply(tracer.render(scene, cams[k], seed=v)).numpy()
+                  for k, v in enumerate(views)]  # fmt: skip
     masks = [example.capture.load_mask(v) for v in views]
     return pbr, PhotoSet(images, cams, example.mesh, masks)
 

@@ -87,9 +87,14 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_consistent_select_uniform_f05": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5},
     "pbr_start_consistent_select_uniform_f025": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.25},
     # that choice with basis v4 for the start where the default basis cannot hold the PBR solution
-    # (`alternative_basis`, the extraction's default since 2026-11-27, docs/design-notes.md item 38)
+    # (`alternative_basis`, docs/design-notes.md item 38), at margins of 2 dB and 3 dB (the extraction's default
+    # since 2026-11-27)
     "pbr_start_consistent_select_uniform_f05_alt_v4": {**CONSISTENT_01, "select_uniform": True,
-                                                       "select_fraction": 0.5, "alternative_basis": BASIS_V4},
+                                                       "select_fraction": 0.5, "alternative_basis": BASIS_V4,
+                                                       "basis_margin_db": 2.0},
+    "pbr_start_consistent_select_uniform_f05_alt_v4_m3": {**CONSISTENT_01, "select_uniform": True,
+                                                          "select_fraction": 0.5, "alternative_basis": BASIS_V4,
+                                                          "basis_margin_db": 3.0},
     # the default with the latent's values compared too, at 0.1 / 0.3 absolute
     "pbr_start_consistent_lat_01": {**CONSISTENT_01, "consistency_latent_value": 1.0},
     "pbr_start_consistent_lat_03": {**CONSISTENT_01, "consistency_latent_value": 3.0},

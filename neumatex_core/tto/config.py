@@ -127,10 +127,11 @@ class TTOConfig:
     # init "pbr": another installed basis to start the neural phase in when the PBR solution expressed in `basis`
     # reproduces the photos worse than PBR itself by more than basis_margin_db and expressed in this one better
     # than in `basis` by more than basis_margin_db (held-out or spread photos, `photo_psnr`): a basis that cannot
-    # hold the PBR solution cannot begin where PBR ends (Cycles metals: the default basis's start 7 dB below PBR;
-    # tto/pbr_start.py `choose_basis`, docs/design-notes.md item 38)
+    # hold the PBR solution cannot begin where PBR ends (Cycles metals: the default basis's start 7 dB below PBR,
+    # v4's 6 dB above it). At 2 dB the demo and benchmark object 17 switched too, on margins of 2.1-2.4 dB, and
+    # gained nothing (tto/pbr_start.py `choose_basis`, docs/design-notes.md item 38)
     alternative_basis: str = ""
-    basis_margin_db: float = 2.0
+    basis_margin_db: float = 3.0
     photo_exposure: bool = False
     exposure_lr: float = 0.05
     photo_loss: PhotoLossKind = "l2"
