@@ -55,8 +55,7 @@ def score_capture(capture: Path) -> dict[str, Any]:
     pred, _ = load_prediction(work)
     cap = load_capture(capture)
     mesh = cap.load_mesh()
-    photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
-                      [cap.load_mask(i) for i in range(len(cap.frames))], exposure=cap.exposures)  # fmt: skip
+    photos = PhotoSet.of_capture(cap, mesh)
     tto, envmap = config.tto_config(), harness_envmap(cap)
     held = validation_frames(photos.cameras, tto.validation_photos, mesh.bounding_sphere()[0])
     fit = photos.subset([i for i in range(photos.count) if i not in held])

@@ -108,8 +108,7 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
     pred, _ = load_prediction(work)
     cap = load_capture(capture)
     mesh = cap.load_mesh()
-    photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
-                      [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
+    photos = PhotoSet.of_capture(cap, mesh)
     variants = {name: variant_tto(name, config.tto_config()) for name in names if name not in out}
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)

@@ -66,8 +66,7 @@ def bench_object(object_dir: Path, work: Path, fit_steps: list[int], bsdf_steps:
     cap = load_capture(object_dir)
     mesh = cap.load_mesh()
     scene_mesh = mesh if mesh.vertex_normals is not None else mesh.with_smooth_normals()
-    photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
-                      [cap.load_mask(i) for i in range(len(cap.frames))])  # fmt: skip
+    photos = PhotoSet.of_capture(cap, mesh)
     tto = TTOConfig.preset("cpu")
     cfg = TTOConfig.preset("cpu", material="pbr", init="lmrm", reg="none", steps=tto.pbr_steps)
 

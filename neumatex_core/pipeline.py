@@ -451,10 +451,7 @@ def load_prediction(work: Path, device: torch.device | str = "cpu") -> tuple[LMR
 
 
 def _photo_set(norm: _Normalised, device: torch.device) -> PhotoSet:
-    cap = norm.capture
-    images = [cap.load_image(i) for i in range(len(cap.frames))]
-    masks = [cap.load_mask(i) for i in range(len(cap.frames))]
-    return PhotoSet(images, norm.cameras, norm.mesh, masks, device, cap.exposures)
+    return PhotoSet.of_capture(norm.capture, norm.mesh, norm.cameras, device)
 
 
 def evaluation_only(tto: TTOConfig) -> str:

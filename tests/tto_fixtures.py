@@ -36,9 +36,7 @@ def load_example(views: tuple[int, ...] = (0, 4, 8, 12, 17, 19)) -> Example:
     cap = load_capture(EXAMPLE)
     mesh = cap.load_mesh()
     env = EnvironmentMap.from_file(cap.envmap_path, cap.envmap_to_world, cap.envmap_scale)
-    images = [cap.load_image(i) for i in range(len(cap.frames))]
-    masks = [cap.load_mask(i) for i in range(len(cap.frames))]
-    photos = PhotoSet(images, cap.cameras, mesh, masks)
+    photos = PhotoSet.of_capture(cap, mesh)
     gt = ground_truth(EXAMPLE, views)
     return Example(cap, mesh, env, photos, load_basis(), gt.points, gt.values)
 

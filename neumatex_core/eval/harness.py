@@ -128,8 +128,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     scene_mesh = mesh
     choice: dict[str, float] = {}
     if tto is not None:
-        photos = PhotoSet([cap.load_image(i) for i in range(len(cap.frames))], cap.cameras, mesh,
-                          [cap.load_mask(i) for i in range(len(cap.frames))], exposure=cap.exposures)  # fmt: skip
+        photos = PhotoSet.of_capture(cap, mesh)
         truth = truth_lookup(gt) if tto.reg == "oracle" else None
         result = solve(tto, mesh, env, photos, cap.tonemap, pred, load_basis(basis_id=tto.basis), truth=truth)
         params, scene_mesh = result.params, result.mesh or mesh

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from neumatex_core.capture import Capture
 from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
@@ -66,6 +67,15 @@ class PhotoSet:
         self.pixel = torch.cat(pixels).to(self.device)  # [M, 3]: frame, x, y
         if self.pixel.shape[0] == 0:
             raise ValueError("the mesh covers no pixel of any photo")
+
+    @classmethod
+    def of_capture(cls, capture: Capture, mesh: Mesh, cameras: Sequence[Camera] | None = None,
+                   device: torch.device | str = "cpu") -> PhotoSet:
+        """Every frame of `capture` with its mask and its given exposure, on `mesh`, seen by the capture's cameras or
+        by `cameras` (the same frames in another frame of reference, e.g. the pipeline's normalised one)."""
+        frames = range(len(capture.frames))
+        return cls([capture.load_image(i) for i in frames], capture.cameras if cameras is None else cameras, mesh,
+                   [capture.load_mask(i) for i in frames], device, capture.exposures)  # fmt: skip
 
     @property
     def count(self) -> int:
