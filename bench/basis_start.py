@@ -28,13 +28,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import write_result  # noqa: E402
+from common import prepared_capture, write_result  # noqa: E402
 
-from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.eval.references import harness_envmap  # noqa: E402
 from neumatex_core.materials.neural_basis import installed_bases, load_basis  # noqa: E402
-from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage  # noqa: E402
-from neumatex_core.tto.data import PhotoSet  # noqa: E402
 from neumatex_core.tto.optimise import build_problem  # noqa: E402
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane  # noqa: E402
 from neumatex_core.tto.pbr_start import _pbr_phase, fit_start_to_pbr, photo_psnr, validation_frames  # noqa: E402
@@ -48,14 +45,7 @@ def work_dir(capture: Path) -> Path:
 
 def score_capture(capture: Path) -> dict[str, Any]:
     """{"capture", "pbr": dB, <basis id>: dB of its start, "takes": the basis the extraction's rule takes}."""
-    config = ExtractConfig.preset("cpu", device="cpu")
-    work = work_dir(capture)
-    for stage in ("validate", "prepare_views", "lmrm"):
-        run_stage(stage, capture, work, config)
-    pred, _ = load_prediction(work)
-    cap = load_capture(capture)
-    mesh = cap.load_mesh()
-    photos = PhotoSet.of_capture(cap, mesh)
+    config, pred, cap, mesh, photos = prepared_capture(capture, work_dir(capture))
     tto, envmap = config.tto_config(), harness_envmap(cap)
     held = validation_frames(photos.cameras, tto.validation_photos, mesh.bounding_sphere()[0])
     fit = photos.subset([i for i in range(photos.count) if i not in held])

@@ -133,3 +133,20 @@ def write_result(name: str, record: dict[str, Any], device: str = "cpu") -> Path
     with path.open("a") as f:
         f.write(json.dumps(line, sort_keys=False) + "\n")
     return path
+
+
+def prepared_capture(capture: Path, work: Path) -> tuple[Any, Any, Any, Any, Any]:
+    """The cpu extract preset's stages before the TTO (validate, prepare_views, lmrm) run on `capture` in `work`
+    (idempotent: kept stages are reused), then (the preset, the LMRM prediction, the capture, its mesh, its photos
+    as a PhotoSet)."""
+    from neumatex_core.capture import load_capture
+    from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage
+    from neumatex_core.tto.data import PhotoSet
+
+    config = ExtractConfig.preset("cpu", device="cpu")
+    for stage in ("validate", "prepare_views", "lmrm"):
+        run_stage(stage, capture, work, config)
+    prediction, _ = load_prediction(work)
+    cap = load_capture(capture)
+    mesh = cap.load_mesh()
+    return config, prediction, cap, mesh, PhotoSet.of_capture(cap, mesh)

@@ -42,7 +42,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from common import write_result  # noqa: E402
+from common import prepared_capture, write_result  # noqa: E402
 
 from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
@@ -53,11 +53,10 @@ from neumatex_core.eval.variants import variant_config  # noqa: E402
 from neumatex_core.imageio import read_image  # noqa: E402
 from neumatex_core.materials.field import MaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
-from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage  # noqa: E402
+from neumatex_core.pipeline import ExtractConfig  # noqa: E402
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig  # noqa: E402
 from neumatex_core.render.scene import Scene  # noqa: E402
 from neumatex_core.tto.config import TTOConfig  # noqa: E402
-from neumatex_core.tto.data import PhotoSet  # noqa: E402
 from neumatex_core.tto.pbr_start import solve  # noqa: E402
 
 TWIN_SUFFIX = ".seed1"  # bench/cycles_matrix.sh's second capture of the same views
@@ -102,13 +101,7 @@ def variant_tto(name: str, default: TTOConfig) -> TTOConfig:
 def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: int, names: list[str],
                   out: dict[str, Any]) -> dict[str, Any]:
     """Add the scores of the variants `names` that `out` (the capture's kept row, or {}) lacks; returns it."""
-    config = ExtractConfig.preset("cpu", device="cpu")
-    for stage in ("validate", "prepare_views", "lmrm"):
-        run_stage(stage, capture, work, config)
-    pred, _ = load_prediction(work)
-    cap = load_capture(capture)
-    mesh = cap.load_mesh()
-    photos = PhotoSet.of_capture(cap, mesh)
+    config, pred, cap, mesh, photos = prepared_capture(capture, work)
     variants = {name: variant_tto(name, config.tto_config()) for name in names if name not in out}
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)

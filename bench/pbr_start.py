@@ -25,18 +25,15 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_result  # noqa: E402
+from common import prepared_capture, write_result  # noqa: E402
 
-from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.eval.references import clean_metrics, harness_envmap  # noqa: E402
 from neumatex_core.fields.triplane import Triplane  # noqa: E402
 from neumatex_core.geometry.surface import SurfaceInteraction  # noqa: E402
 from neumatex_core.materials.field import MaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial, load_basis  # noqa: E402
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural  # noqa: E402
-from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage  # noqa: E402
 from neumatex_core.tto.config import TTOConfig  # noqa: E402
-from neumatex_core.tto.data import PhotoSet  # noqa: E402
 from neumatex_core.tto.optimise import build_problem, optimise  # noqa: E402
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane  # noqa: E402
 from neumatex_core.tto.pbr_start import FIT_POINTS, fit_planes, refine_to_pbr_bsdf  # noqa: E402
@@ -59,14 +56,8 @@ class PerPointConversion(MaterialField):
 
 def bench_object(object_dir: Path, work: Path, fit_steps: list[int], bsdf_steps: list[int],
                  basis: NeuralBasis) -> dict[str, Any]:
-    config = ExtractConfig.preset("cpu", device="cpu")
-    for stage in ("validate", "prepare_views", "lmrm"):
-        run_stage(stage, object_dir, work, config)
-    pred, _ = load_prediction(work)
-    cap = load_capture(object_dir)
-    mesh = cap.load_mesh()
+    _, pred, cap, mesh, photos = prepared_capture(object_dir, work)
     scene_mesh = mesh if mesh.vertex_normals is not None else mesh.with_smooth_normals()
-    photos = PhotoSet.of_capture(cap, mesh)
     tto = TTOConfig.preset("cpu")
     cfg = TTOConfig.preset("cpu", material="pbr", init="lmrm", reg="none", steps=tto.pbr_steps)
 
