@@ -65,7 +65,9 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # no pull towards the start's values). It lets the neural phase add a coat or a sheen to a whole material and keeps
 # it from painting the capture's light onto parts of it. On the Cycles captures (4 meshes, clean, relit - PBR) coat
 # +2.98, sheen +1.26, diffuse +2.11 dB, where the anchor to the start's values (lambda_reg 0.1, the default before)
-# gave +1.91, +0.14 and -0.01 (docs/design-notes.md, items 26 and 34).
+# gave +1.91, +0.14 and -0.01 (docs/design-notes.md, items 26 and 34). The neural phase starts in basis v4 where the
+# default basis cannot hold the PBR solution (Cycles metals, held-out photos / relit - PBR: +0.73 / -0.56 dB, where
+# the default basis gave -3.92 / -4.88; item 38).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4}
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
