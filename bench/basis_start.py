@@ -6,10 +6,10 @@ as the extraction's default does before its neural phase: the PBR phase of the c
 held out (`validation_frames`), then its solution fitted into the neural triplane (`fit_start_to_pbr`, no neural
 step) in each installed basis, and the PBR solution and every start scored on the held-out photos with the clean
 estimator `photo_psnr` (one seed, so all share their random numbers). The extraction's rule
-(`TTOConfig.alternative_basis`, `tto/pbr_start.py` `choose_basis`) takes the alternative basis where the default
-basis's start is more than 2 dB below PBR and the alternative's more than 2 dB above the default's; the last column
-says what it takes. One JSON line per capture in bench/results/basis_start.jsonl (a stopped run keeps the finished
-ones).
+(`TTOConfig.alternative_basis`, `tto/pbr_start.py` `alternative_wins`) takes the alternative basis where the default
+basis's start is more than the preset's margin (3 dB) below PBR and the alternative's more than that above the
+default's; the last column says what it takes. One JSON line per capture in bench/results/basis_start.jsonl (a
+stopped run keeps the finished ones).
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/basis_start.py runs/cycles/teapot-{metal,coat} \
         data/benchmark-test/test-000017        # about 1.5-2.5 minutes per capture on one thread
@@ -34,7 +34,13 @@ from neumatex_core.eval.references import harness_envmap  # noqa: E402
 from neumatex_core.materials.neural_basis import installed_bases, load_basis  # noqa: E402
 from neumatex_core.tto.optimise import build_problem  # noqa: E402
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane  # noqa: E402
-from neumatex_core.tto.pbr_start import _pbr_phase, fit_start_to_pbr, photo_psnr, validation_frames  # noqa: E402
+from neumatex_core.tto.pbr_start import (  # noqa: E402
+    _pbr_phase,
+    alternative_wins,
+    fit_start_to_pbr,
+    photo_psnr,
+    validation_frames,
+)
 
 
 def work_dir(capture: Path) -> Path:
@@ -64,8 +70,8 @@ def score_capture(capture: Path) -> dict[str, Any]:
                          tto.pbr_bsdf_fit_steps)  # fmt: skip
         row[basis_id] = photo_psnr(problem.params, problem.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
                                    tto.seed + 1)  # fmt: skip
-    own, other, margin = row[load_basis().basis_id], row[tto.alternative_basis], tto.basis_margin_db
-    row["takes"] = tto.alternative_basis if row["pbr"] - own > margin and other - own > margin else "default"
+    wins = alternative_wins(row["pbr"], row[load_basis().basis_id], row[tto.alternative_basis], tto.basis_margin_db)
+    row["takes"] = tto.alternative_basis if wins else "default"
     row["seconds"] = time.perf_counter() - t0
     return row
 

@@ -39,7 +39,9 @@ from common import write_result  # noqa: E402
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
 from neumatex_core.eval.suite import Results, paired_difference, select_objects  # noqa: E402
 from neumatex_core.eval.variants import variant_config  # noqa: E402
+from neumatex_core.materials.neural_basis import BASIS_V4, load_basis  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig  # noqa: E402
+from neumatex_core.tto.pbr_start import alternative_wins  # noqa: E402
 
 METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor", "psnr_latents")
 NAMES = {"psnr_pathtrace_clean": "PathTrace, clean", "psnr_relight_clean": "Relight, clean",
@@ -84,9 +86,8 @@ def basis_scores() -> dict[str, dict[str, float]]:
     path = RESULTS / "basis_start.jsonl"
     for line in path.read_text().splitlines() if path.is_file() else []:
         for row in json.loads(line)["rows"]:
-            default = next(k for k in row if k.startswith("nmx-basis-v1"))
-            scores[Path(row["capture"]).name] = {"pbr": row["pbr"], "own": row[default],
-                                                 "alternative": row["nmx-basis-v4-2b82d9690606"]}  # fmt: skip
+            scores[Path(row["capture"]).name] = {"pbr": row["pbr"], "own": row[load_basis().basis_id],
+                                                 "alternative": row[BASIS_V4]}  # fmt: skip
     own = RESULTS / "variants_clean.jsonl"
     for line in own.read_text().splitlines() if own.is_file() else []:
         c = json.loads(line).get("choice", {})
@@ -106,11 +107,8 @@ def basis_choice(variant: str, known: dict[str, float] | None) -> str | None:
         return "default"
     if not known or "pbr" not in known:
         return None
-    if known["pbr"] - known["own"] <= tto.basis_margin_db:
-        return "default"
-    if "alternative" not in known:
-        return None
-    return tto.alternative_basis if known["alternative"] - known["own"] > tto.basis_margin_db else "default"
+    wins = alternative_wins(known["pbr"], known["own"], known.get("alternative"), tto.basis_margin_db)
+    return None if wins is None else tto.alternative_basis if wins else "default"
 
 
 def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None) -> int:

@@ -147,8 +147,7 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
                        _offset(progress, 0, total, 0.0), should_stop, checkpoint("checkpoint_pbr.pt"))
     if not first.finished:
         return first
-    start = choose_basis(config, first, mesh, envmap, photos, photos.subset(spread_frames(photos.count,
-                         config.validation_photos)), tonemap, prediction, basis, anchor_available)  # fmt: skip
+    start = choose_basis(config, first, mesh, envmap, photos, None, tonemap, prediction, basis, anchor_available)
     result = _neural_phase(config, first, mesh, envmap, photos, tonemap, prediction,
                            basis if start is None else start.basis, anchor_available, truth,
                            _offset(progress, config.pbr_steps, total, 1.0), should_stop, checkpoint("checkpoint.pt"),
@@ -292,12 +291,22 @@ class BasisStart:
     record: dict[str, float]
 
 
+def alternative_wins(pbr_psnr: float, own: float, other: float | None, margin: float) -> bool | None:
+    """The rule of `choose_basis` on photo PSNRs (dB) of the PBR solution, its start in the configured basis and in
+    the alternative (None: not made): the alternative is taken only where the configured basis's start loses more
+    than `margin` to PBR and the alternative's beats it by more than `margin`; None when that needs `other`."""
+    if pbr_psnr - own <= margin:
+        return False
+    return None if other is None else other - own > margin
+
+
 def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
-                 scoring: PhotoSet, tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis,
+                 scoring: PhotoSet | None, tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis,
                  anchor_available: bool) -> BasisStart | None:
     """config.alternative_basis: the basis the neural phase starts in. The PBR solution `first` (fitted on `photos`)
     is expressed in `basis` (`fit_start_to_pbr`) and both are scored on the photos `scoring` (`photo_psnr`, one
-    seed). The start fits no photo, so photos the PBR phase fitted are fair here. When the start loses more than
+    seed; None: config.validation_photos of `photos` spread over the capture). The start fits no photo, so photos
+    the PBR phase fitted are fair here. When the start loses more than
     config.basis_margin_db to PBR, the basis cannot hold the PBR solution (the default basis turns a coloured metal
     grey: Cycles metals 7 dB below PBR), so the start is also made in the alternative basis, which is taken when it
     scores better than the start in `basis` by more than basis_margin_db. None without an alternative (or when it
@@ -308,6 +317,7 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
     alternative = load_basis(device, config.alternative_basis)
     if alternative.basis_id == basis.basis_id:
         return None
+    scored = photos.subset(spread_frames(photos.count, config.validation_photos)) if scoring is None else scoring
     # the neural phase's problem (tto/pbr_start.py `_neural_phase`): same planes to start from, same fit
     neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
                             alternative_basis="")
@@ -317,17 +327,17 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
         assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
         mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, candidate, config.seed,
                                config.pbr_fit_steps, config.pbr_bsdf_fit_steps)
-        score = photo_psnr(problem.params, problem.mesh or mesh, envmap, scoring, tonemap, config, config.seed + 1)
+        score = photo_psnr(problem.params, problem.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
         return problem.params.tensor.detach().clone(), mse, score
 
-    pbr_psnr = photo_psnr(first.params, first.mesh or mesh, envmap, scoring, tonemap, config, config.seed + 1)
+    pbr_psnr = photo_psnr(first.params, first.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
     planes, mse, own = start_in(basis)
     record = {"basis_pbr_psnr": pbr_psnr, "basis_start_psnr": own}
     chosen = BasisStart(basis, planes, mse, False, record)
-    if pbr_psnr - own > config.basis_margin_db:
+    if alternative_wins(pbr_psnr, own, None, config.basis_margin_db) is None:  # the configured basis loses to PBR
         other_planes, other_mse, other = start_in(alternative)
         record["basis_alternative_psnr"] = other
-        if other - own > config.basis_margin_db:
+        if alternative_wins(pbr_psnr, own, other, config.basis_margin_db):
             chosen = BasisStart(alternative, other_planes, other_mse, True, record)
     record["basis_switched"] = float(chosen.switched)
     return chosen
