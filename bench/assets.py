@@ -22,7 +22,6 @@ xatlas unwrap, bake at `--texture`^2, PBR fit) and measured:
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import statistics
@@ -37,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import time_repeats, write_result  # noqa: E402
+from common import argument_parser, time_repeats, write_result  # noqa: E402
 
 from neumatex_core.assets import asset_from_triplane, read_asset, write_asset  # noqa: E402
 from neumatex_core.assets.asset import MaterialAsset  # noqa: E402
@@ -158,7 +157,7 @@ def render_figures(asset: MaterialAsset, envmap: EnvironmentMap, resolution: int
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("--objects", type=int, default=40)
     parser.add_argument("--texture", type=int, default=256, help="baked texture resolution")
     parser.add_argument("--resolution", type=int, default=64, help="render size (pixels)")

@@ -35,7 +35,6 @@ is left the decoder's (docs/design-notes.md item 31).
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from pathlib import Path
@@ -46,7 +45,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import time_repeats, write_result  # noqa: E402
+from common import argument_parser, time_repeats, write_result  # noqa: E402
 
 from neumatex_core.capture import Tonemap  # noqa: E402
 from neumatex_core.eval.metrics import psnr  # noqa: E402
@@ -156,7 +155,7 @@ def decoder_flops(basis: NeuralBasis) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("--heldout", type=int, default=10_000, help="held-out parameter sets")
     parser.add_argument("--per-family", type=int, default=2, help="sphere materials per family")
     parser.add_argument("--envmaps", type=str, default="", help="comma-separated maps (default: all shared)")

@@ -11,13 +11,12 @@ basis's start is more than the preset's margin (3 dB) below PBR and the alternat
 default's; the last column says what it takes. One JSON line per capture in bench/results/basis_start.jsonl (a
 stopped run keeps the finished ones).
 
-    NEUMATEX_SHARED=../shared .venv/bin/python bench/basis_start.py runs/cycles/teapot-{metal,coat} \
+    NEUMATEX_SHARED=../shared .venv/bin/python bench/basis_start.py runs/cycles/teapot-{metal,coat} \\
         data/benchmark-test/test-000017        # about 1.5-2.5 minutes per capture on one thread
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from dataclasses import replace
@@ -28,7 +27,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import prepared_capture, write_result  # noqa: E402
+from common import argument_parser, prepared_capture, write_result  # noqa: E402
 
 from neumatex_core.eval.references import harness_envmap  # noqa: E402
 from neumatex_core.materials.neural_basis import installed_bases, load_basis  # noqa: E402
@@ -77,7 +76,7 @@ def score_capture(capture: Path) -> dict[str, Any]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("captures", nargs="+", type=Path)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()

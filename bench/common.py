@@ -8,6 +8,7 @@ figures.
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import json
 import os
@@ -116,6 +117,14 @@ def time_repeats(fn: Callable[[], Any], repeats: int = 3, warmup: int = 0,
         if budget_s is not None and sum(times) > budget_s:
             break
     return {"min": min(times), "median": statistics.median(times), "times": times, "foreign_cpu": foreign}
+
+
+def argument_parser(doc: str | None) -> argparse.ArgumentParser:
+    """A benchmark's command line: its module docstring's first paragraph as the description and the rest, kept as
+    written (the commands it shows, what it writes), after the options in `--help`."""
+    first, _, rest = (doc or "").strip().partition("\n\n")
+    return argparse.ArgumentParser(description=" ".join(first.split()), epilog=rest or None,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
 def write_result(name: str, record: dict[str, Any], device: str = "cpu") -> Path:

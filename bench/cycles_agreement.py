@@ -16,7 +16,6 @@ Exits 1 when the mean covered-pixel PSNR is below --threshold.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -26,7 +25,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_result  # noqa: E402
+from common import argument_parser, write_result  # noqa: E402
 
 from neumatex_core.synth.cycles import (  # noqa: E402
     CyclesError,
@@ -39,7 +38,7 @@ NOISE_SEED = 7919  # Cycles seed of the second capture (any seed unrelated to 0.
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argument_parser(__doc__)
     p.add_argument("--mesh", default="teapot.obj", help="mesh file or shared mesh name")
     p.add_argument("--envmap", default="courtyard.exr", help="map file or shared map name")
     p.add_argument("--envmap-yaw", type=float, default=30.0, help="envmap_to_world yaw (degrees): tests the rotation")

@@ -31,7 +31,6 @@ either.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -42,7 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from common import prepared_capture, write_result  # noqa: E402
+from common import argument_parser, prepared_capture, write_result  # noqa: E402
 
 from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
@@ -141,7 +140,7 @@ def selection_of(result: Any) -> dict[str, Any]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("captures", nargs="+", type=Path, help="captures written by `neumatex cycles-capture`")
     parser.add_argument("--work", default="runs/bench-cycles-extract", type=Path)
     parser.add_argument("--spp", type=int, default=256, help="samples per pixel of our scored renders")

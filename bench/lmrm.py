@@ -25,7 +25,6 @@ G-buffers (positions at pixel centres). Measured in the same run:
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -37,7 +36,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import write_result  # noqa: E402
+from common import argument_parser, write_result  # noqa: E402
 
 from neumatex_core.capture.tonemap import srgb_eotf  # noqa: E402
 from neumatex_core.eval.metrics import psnr  # noqa: E402
@@ -99,7 +98,7 @@ def figure(rows: list[dict[str, np.ndarray]], path: Path) -> None:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argument_parser(__doc__)
     ap.add_argument("--data", default="data/benchmark-test", help="test split folder (neumatex synth --split test)")
     ap.add_argument("--limit", type=int, default=0, help="at most this many test objects (0: all)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads")

@@ -15,7 +15,6 @@ each object: it runs the pipeline's validate / prepare_views / lmrm stages into 
 
 from __future__ import annotations
 
-import argparse
 import copy
 import sys
 import time
@@ -25,7 +24,7 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import prepared_capture, write_result  # noqa: E402
+from common import argument_parser, prepared_capture, write_result  # noqa: E402
 
 from neumatex_core.eval.references import clean_metrics, harness_envmap  # noqa: E402
 from neumatex_core.fields.triplane import Triplane  # noqa: E402
@@ -90,7 +89,7 @@ def bench_object(object_dir: Path, work: Path, fit_steps: list[int], bsdf_steps:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("--data", default="data/benchmark-test")
     parser.add_argument("--objects", default="test-000000,test-000001")
     parser.add_argument("--work", default="runs/bench-pbr-start", help="pipeline work folders (LMRM predictions)")

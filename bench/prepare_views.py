@@ -12,7 +12,6 @@ per capture, the seconds per photo and the ratio, and appends a JSON line to ben
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import sys
 import tempfile
@@ -21,7 +20,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import time_repeats, write_result  # noqa: E402
+from common import argument_parser, time_repeats, write_result  # noqa: E402
 
 from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig, run_stage  # noqa: E402
@@ -30,7 +29,7 @@ REPO = Path(__file__).resolve().parent.parent
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argument_parser(__doc__)
     ap.add_argument("--capture", default=str(REPO / "examples" / "coat-teapot" / "photos"))
     ap.add_argument("--preset", default="cpu", choices=["tiny", "cpu", "gpu"])
     ap.add_argument("--repeats", type=int, default=3)

@@ -17,7 +17,6 @@ ceiling well below infinity.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import shutil
@@ -31,7 +30,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import time_repeats, write_result  # noqa: E402
+from common import argument_parser, time_repeats, write_result  # noqa: E402
 
 from neumatex_core.capture.tonemap import Tonemap  # noqa: E402
 from neumatex_core.eval.suite import select_objects  # noqa: E402
@@ -94,7 +93,7 @@ def bench_object(object_dir: Path, config: ExtractConfig, root: Path) -> dict[st
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap = argument_parser(__doc__)
     ap.add_argument("--data", default=str(REPO / "data" / "benchmark-test"))
     ap.add_argument("--objects", default="first:2")
     ap.add_argument("--preset", default="cpu", choices=["tiny", "cpu", "gpu"])

@@ -16,7 +16,6 @@ and random-pose captures.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_result  # noqa: E402
+from common import argument_parser, write_result  # noqa: E402
 
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
 from neumatex_core.eval.suite import select_objects  # noqa: E402
@@ -50,7 +49,7 @@ def one(object_dir: str, work: str, variants: list[str]) -> dict[str, Any]:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("--data", default="data/benchmark-test")
     parser.add_argument("--objects", default="first:2")
     parser.add_argument("--variants", default="pbr_start_anchor_01,pbr")

@@ -29,7 +29,6 @@ minutes when other processes compete for the cores); `--quick` is a smoke run.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -42,7 +41,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import time_repeats, write_result  # noqa: E402
+from common import argument_parser, time_repeats, write_result  # noqa: E402
 
 from neumatex_core.geometry.camera import Camera, preset_views  # noqa: E402
 from neumatex_core.geometry.mesh import Mesh, load_mesh  # noqa: E402
@@ -175,7 +174,7 @@ def random_rays(mesh: Mesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("--mesh", type=Path, default=DEFAULT_MESH)
     parser.add_argument("--envmap", type=Path, default=DEFAULT_ENVMAP)
     parser.add_argument("--resolution", type=int, default=256)

@@ -49,7 +49,7 @@ import httpx
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import _busy_cpu_seconds, write_result  # noqa: E402
+from common import _busy_cpu_seconds, argument_parser, write_result  # noqa: E402
 
 from services.cluster import FAST, REPO, Cluster, wait_for  # noqa: E402
 
@@ -472,7 +472,7 @@ def jobs(cluster: Cluster, client: httpx.Client, capture_id: str, args: argparse
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argument_parser(__doc__)
     ap.add_argument("--only", default="status,upload,jobs", help="comma-separated subset of status,upload,jobs")
     ap.add_argument("--connections", type=int, default=100)
     ap.add_argument("--seconds", type=float, default=10.0, help="per status run")

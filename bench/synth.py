@@ -26,7 +26,6 @@ objects. On a shared machine, the `foreign_cpu` figure says how much of the mach
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -41,7 +40,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import _busy_cpu_seconds, write_result  # noqa: E402
+from common import _busy_cpu_seconds, argument_parser, write_result  # noqa: E402
 
 from neumatex_core.geometry.camera import preset_views  # noqa: E402
 from neumatex_core.materials.field import UniformPBR  # noqa: E402
@@ -122,7 +121,7 @@ def reference_renders(cfg: SynthConfig, basis_device: str = "cpu") -> dict[str, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("--objects", type=int, default=4)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=1000)

@@ -23,7 +23,6 @@ this file's rows, so e.g. the default's table covers objects that only a neighbo
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -34,7 +33,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_result  # noqa: E402
+from common import argument_parser, write_result  # noqa: E402
 
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
 from neumatex_core.eval.suite import Results, paired_difference, select_objects  # noqa: E402
@@ -144,7 +143,7 @@ def summarise(variants: list[str], against: list[str], fill_from: list[str] | No
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argument_parser(__doc__)
     parser.add_argument("--data", default="data/benchmark-test")
     parser.add_argument("--objects", default="all")
     parser.add_argument("--variants", default="pbr_start_consistent_1")

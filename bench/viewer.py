@@ -21,7 +21,6 @@ at `--shot-size`, accumulated over `--shot-frames` frames of `--shot-spp` sample
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
@@ -33,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from asset_fixtures import make_asset  # noqa: E402
-from common import time_repeats, write_result  # noqa: E402
+from common import argument_parser, time_repeats, write_result  # noqa: E402
 from conftest import ENVMAPS, MESHES  # noqa: E402
 from viewer_fixtures import CHROMIUM_ARGS, set_camera, view_camera, viewer_page  # noqa: E402
 
@@ -47,7 +46,7 @@ from neumatex_core.viewer.web_bundle import EnvSource, torch_envmap, write_bundl
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argument_parser(__doc__)
     ap.add_argument("--mesh", default="cow", help="shared mesh name")
     ap.add_argument("--envmap", default="studio", help="shared map name")
     ap.add_argument("--texture", type=int, default=512, help="texture resolution of the asset")
