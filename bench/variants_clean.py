@@ -19,6 +19,10 @@ row of the first of B, C, ... whose choice of basis there is the same (`alternat
 38): variants that differ only in it (or in its margin) give the same result bit for bit where they choose the same
 basis. The choice is worked out from the scores of bench/results/basis_start.jsonl and from the basis records of
 this file's rows, so e.g. the default's table covers objects that only a neighbouring variant was run on.
+
+`--by-family BASELINE` (with --summarise) also prints each variant minus BASELINE per material family (the families
+of an object's regions, from its meta.json; an object with two counts in both rows) and over all objects, with the
+number of objects on which the variant is ahead.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import argument_parser, write_result  # noqa: E402
 
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
-from neumatex_core.eval.suite import Results, paired_difference, select_objects  # noqa: E402
+from neumatex_core.eval.suite import Results, object_families, paired_difference, select_objects  # noqa: E402
 from neumatex_core.eval.variants import variant_config  # noqa: E402
 from neumatex_core.materials.neural_basis import BASIS_V4, load_basis  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig  # noqa: E402
@@ -110,7 +114,28 @@ def basis_choice(variant: str, known: dict[str, float] | None) -> str | None:
     return None if wins is None else tto.alternative_basis if wins else "default"
 
 
-def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None) -> int:
+def family_table(res: Results, variant: str, base: str, families: dict[str, list[str]]) -> None:
+    """Print `variant` - `base` per material family (mean +- standard error over the objects with a region of that
+    family, and on how many of them `variant` is ahead), then over all objects."""
+    metrics = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor")
+    print(f"\n{variant} - {base} by material family (an object with two families counts in both rows)")
+    print("| family | " + " | ".join(NAMES[m] for m in metrics) + " |")
+    print("|---" * (1 + len(metrics)) + "|")
+    names = sorted({f for fs in families.values() for f in fs})
+    groups = {f: {o for o, fs in families.items() if f in fs} for f in names}
+    for family, keep in [*groups.items(), ("all", set(families))]:
+        cells = []
+        for m in metrics:
+            mine, theirs = res.get(variant, {}).get(m, {}), res.get(base, {}).get(m, {})
+            diffs = [mine[o] - theirs[o] for o in sorted(keep & set(mine) & set(theirs))]
+            se = float(np.std(diffs, ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else float("nan")
+            cells.append(f"{np.mean(diffs):+.2f} +- {se:.2f} (ahead on {sum(d > 0 for d in diffs)} of {len(diffs)})"
+                         if diffs else "-")
+        print(f"| {family} | " + " | ".join(cells) + " |")
+
+
+def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None,
+              by_family: tuple[Path, str] | None = None) -> int:
     stored = stored_rows()
     scores = basis_scores()
     for variant in variants if fill_from else []:
@@ -139,6 +164,8 @@ def summarise(variants: list[str], against: list[str], fill_from: list[str] | No
                 mean, se, n = paired_difference(res, variant, base, m)  # the PBR baseline has no latents: n = 0
                 cells.append(f"{mean:+.2f} +- {se:.2f} (n={n})" if n > 1 else "-")
             print(f"| {NAMES[m]} | {' | '.join(cells)} |")
+        if by_family is not None:
+            family_table(res, variant, by_family[1], object_families(by_family[0], sorted(mine)))
     return 0
 
 
@@ -153,10 +180,13 @@ def main() -> int:
     parser.add_argument("--summarise", action="store_true", help="print the paired table so far and stop")
     parser.add_argument("--fill-from", default="", help="with --summarise: comma-separated variants whose rows stand "
                         "in where they choose the same basis (see above)")
+    parser.add_argument("--by-family", default="", metavar="BASELINE", help="with --summarise: also each variant - "
+                        "BASELINE per material family of the objects (their meta.json), and on how many it is ahead")
     args = parser.parse_args()
     variants, against = args.variants.split(","), args.against.split(",")
     if args.summarise:
-        return summarise(variants, against, [v for v in args.fill_from.split(",") if v])
+        return summarise(variants, against, [v for v in args.fill_from.split(",") if v],
+                         (Path(args.data), args.by_family) if args.by_family else None)
     data = Path(args.data)
     done = stored_rows()
     jobs = [(str(data / o), str(Path(args.work) / o), v) for v in variants for o in select_objects(data, args.objects)
