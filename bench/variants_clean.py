@@ -40,7 +40,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import argument_parser, write_result  # noqa: E402
 
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
-from neumatex_core.eval.suite import Results, object_families, paired_difference, select_objects  # noqa: E402
+from neumatex_core.eval.suite import (  # noqa: E402
+    Results,
+    object_families,
+    paired_difference,
+    paired_values,
+    select_objects,
+)
 from neumatex_core.eval.variants import variant_config  # noqa: E402
 from neumatex_core.materials.neural_basis import BASIS_V4, load_basis  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig  # noqa: E402
@@ -124,13 +130,13 @@ def family_table(res: Results, variant: str, base: str, families: dict[str, list
     names = sorted({f for fs in families.values() for f in fs})
     groups = {f: {o for o, fs in families.items() if f in fs} for f in names}
     for family, keep in [*groups.items(), ("all", set(families))]:
+        sub: Results = {v: {m: {o: x for o, x in per.items() if o in keep} for m, per in res.get(v, {}).items()}
+                        for v in (variant, base)}  # fmt: skip
         cells = []
         for m in metrics:
-            mine, theirs = res.get(variant, {}).get(m, {}), res.get(base, {}).get(m, {})
-            diffs = [mine[o] - theirs[o] for o in sorted(keep & set(mine) & set(theirs))]
-            se = float(np.std(diffs, ddof=1) / np.sqrt(len(diffs))) if len(diffs) > 1 else float("nan")
-            cells.append(f"{np.mean(diffs):+.2f} +- {se:.2f} (ahead on {sum(d > 0 for d in diffs)} of {len(diffs)})"
-                         if diffs else "-")
+            mean, se, n = paired_difference(sub, variant, base, m)
+            ahead = sum(d > 0 for d in paired_values(sub, variant, base, m).values())
+            cells.append(f"{mean:+.2f} +- {se:.2f} (ahead on {ahead} of {n})" if n else "-")
         print(f"| {family} | " + " | ".join(cells) + " |")
 
 
