@@ -400,10 +400,15 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    default = variant_config("pbr_start_consistent_select_uniform_f05_alt_v4_m3", TTOConfig.preset("cpu"))
+    default = variant_config("pbr_start_default_tuned_0001", TTOConfig.preset("cpu"))
     assert default == extraction
+    # the default before the decoder was fine-tuned (2026-11-27)
+    frozen = variant_config("pbr_start_consistent_select_uniform_f05_alt_v4_m3", extraction)
+    assert frozen == replace(extraction, train_decoder=False, decoder_lr=TTOConfig().decoder_lr)
     textured = replace(extraction, select_uniform=False)
     assert ExtractConfig.preset("cpu", variation="textured").tto_config() == textured
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
-    assert variant_config("pbr_start_consistent_01", extraction) == replace(textured, alternative_basis="")
+    assert variant_config("pbr_start_consistent_01", extraction) == replace(textured, alternative_basis="",
+                                                                            train_decoder=False, decoder_lr=0.1)
     assert variant_config("pbr", extraction).alternative_basis == ""  # type: ignore[union-attr]
+    assert not variant_config("pbr", extraction).train_decoder  # type: ignore[union-attr]

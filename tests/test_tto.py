@@ -654,3 +654,41 @@ def test_solve_runs_the_neural_phase_in_the_basis_it_chose(example, truth_predic
     assert choosing.basis is not None and choosing.basis.basis_id == BASIS_V4
     assert choosing.selection["basis_switched"] == 1.0
     assert {"uniform_kept", "basis_pbr_psnr", "basis_start_psnr"} <= set(choosing.selection)
+
+
+def test_a_fine_tuned_decoder_starts_from_the_fit_the_basis_choice_made(example, truth_prediction, monkeypatch):
+    """With train_decoder, the start's fit leaves the decoder as it is (at the fit's learning rate it saturated:
+    docs/design-notes.md item 39), so the planes that `choose_basis` fitted are the neural phase's start, not fitted
+    again (1500 Adam steps each time), and the result is bit for bit the plain TTO's, which fits its own start; the
+    TTO then fine-tunes the decoder."""
+    from neumatex_core.materials.neural_basis import BASIS_V4
+    from neumatex_core.tto import pbr_start, solve
+
+    calls = []
+    fit = pbr_start.fit_start_to_pbr
+
+    def counted(*a, **k):
+        calls.append(1)
+        return fit(*a, **k)
+
+    monkeypatch.setattr(pbr_start, "fit_start_to_pbr", counted)
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, train_decoder=True, pbr_fit_steps=50)  # fmt: skip
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2))
+    plain = solve(cfg, *args, example.basis)
+    assert len(calls) == 1
+    kept = solve(replace(cfg, alternative_basis=BASIS_V4, basis_margin_db=100.0), *args, example.basis)
+    assert len(calls) == 2  # choose_basis's fit only
+    assert kept.selection["basis_switched"] == 0.0
+    assert torch.equal(kept.params.tensor, plain.params.tensor)
+    tuned, want = kept.params.decoder.state_dict(), plain.params.decoder.state_dict()
+    assert all(torch.equal(tuned[k], want[k]) for k in want)
+    lmrm = truth_prediction.material_decoder.state_dict()
+    assert not all(torch.equal(want[k], lmrm[k]) for k in want)  # the TTO fine-tuned it
+
+    points, _ = example.mesh.sample_surface(2048, seed=0)
+    neural = kept.params
+    before = {k: v.clone() for k, v in neural.decoder.state_dict().items()}
+    pbr_start.fit_planes(neural, points, torch.full((2048, 3), 0.5), torch.zeros(2048, 6), 0, 20)
+    assert neural.decoder_parameters()
+    assert all(torch.equal(before[k], v) for k, v in neural.decoder.state_dict().items())

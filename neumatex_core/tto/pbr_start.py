@@ -53,11 +53,13 @@ VALIDATION_NEIGHBOUR_DEG = 30.0  # a held-out photo needs a fitted one within th
 
 def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor, latent: torch.Tensor, seed: int = 0,
                steps: int = FIT_STEPS) -> float:
-    """Fit the planes of `neural` (in place, and its decoder where TTO fine-tunes it) to G-buffers rho_d [P, 3],
-    latent [P, 6] at surface points [P, 3]; returns the final mean squared error on (rho_d, (latent + 1) / 2), the
-    G-buffer metric's scale."""
+    """Fit the planes of `neural` (in place; its decoder stays as it is) to G-buffers rho_d [P, 3], latent [P, 6]
+    at surface points [P, 3]; returns the final mean squared error on (rho_d, (latent + 1) / 2), the G-buffer
+    metric's scale. The decoder is not fitted even where TTO fine-tunes it: at this fit's learning rate it saturated
+    (benchmark object 6: start error 0.08 instead of 1e-3, PathTrace 5.8 dB; docs/design-notes.md item 39), and a
+    start made with the frozen decoder is the same whether or not TTO fine-tunes it afterwards."""
     want = torch.cat([rho_d, (latent + 1) / 2], dim=-1).detach()
-    opt = torch.optim.Adam([neural.tensor, *neural.decoder_parameters()], lr=FIT_LR)
+    opt = torch.optim.Adam([neural.tensor], lr=FIT_LR)
     g = torch.Generator(device=points.device).manual_seed(seed)
 
     def error(idx: torch.Tensor | None = None) -> torch.Tensor:
@@ -95,15 +97,15 @@ def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis
 
 def refine_to_pbr_bsdf(neural: NeuralTriplane, basis: NeuralBasis, points: torch.Tensor, pbr_values: torch.Tensor,
                        seed: int = 0, steps: int = 300) -> float:
-    """Refine the planes of `neural` (in place, and its decoder where TTO fine-tunes it) so that its BSDF equals the
-    PBR material's at surface points [P, 3], whose PBR G-buffers are pbr_values [P, 5] (base colour, roughness,
-    metallic; `PBRTriplane.gbuffer`): the loss the basis is trained with (materials/basis_training.py: L1 of
+    """Refine the planes of `neural` (in place; its decoder stays as it is, as in `fit_planes`) so that its BSDF
+    equals the PBR material's at surface points [P, 3], whose PBR G-buffers are pbr_values [P, 5] (base colour,
+    roughness, metallic; `PBRTriplane.gbuffer`): the loss the basis is trained with (materials/basis_training.py: L1 of
     log(f cos_i + EPS), relative error on peaks and tails alike) between the neural material's whole f (diffuse and
     f_neu) and PBR's; wo uniform on the hemisphere, wi half from PBR's importance sampler (its specular peak), half
     uniform; fresh directions every step. Returns the last step's loss (mean log-L1)."""
     device = points.device
     want = pbr_values.detach()
-    opt = torch.optim.Adam([neural.tensor, *neural.decoder_parameters()], lr=BSDF_FIT_LR)
+    opt = torch.optim.Adam([neural.tensor], lr=BSDF_FIT_LR)
     g = torch.Generator().manual_seed(seed + 1)  # directions are drawn on the CPU, like the basis's training
     loss = torch.zeros(())
     for step in range(steps):
@@ -195,7 +197,7 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
         problem.exposure.start_at(first.exposure)
-    if start is not None and not problem.params.decoder_parameters():
+    if start is not None:  # the planes choose_basis fitted (the decoder is not fitted: `fit_planes`)
         with torch.no_grad():
             problem.params.tensor.copy_(start.planes)
         start_mse = start.mse
