@@ -69,8 +69,8 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # default basis cannot hold the PBR solution (Cycles metals, held-out photos / relit - PBR: +0.73 / -0.56 dB, where
 # the default basis gave -3.92 / -4.88; item 38). Both phases fine-tune a copy of their decoder (the LMRM's PBR head,
 # its material decoder) at 1/1000 of the planes' learning rate: the frozen decoder caps what the triplane can
-# express (item 24); on the 9 benchmark objects measured, clean PathTrace +1.09 dB over the frozen one and on the
-# Cycles sheens +9.31 dB relit over PBR (item 39).
+# express (item 24); on the 12 benchmark objects measured, clean PathTrace +0.86 dB over the frozen one, and on
+# the Cycles sheens +9.31 dB relit over PBR (item 39).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001}
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
