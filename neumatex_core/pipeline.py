@@ -80,7 +80,7 @@ NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_co
 # on all photos but four and keeps uniform unless textured reproduces those clearly better (docs/design-notes.md,
 # items 35-37). Without a PBR start there is nothing to choose: "choose" is then "textured" (ExtractConfig.tto_config).
 VARIATIONS: dict[str, dict[str, Any]] = {"textured": {}, "uniform": {"consistency_rho_value": UNIFORM_RHO_VALUE},
-                                         "choose": {"select_uniform": True}}
+                                         "choose": {"select_uniform": True, "select_reuse_start": True}}
 # The allowed values of ExtractConfig's numeric fields (ExtractConfig.check; the job service's bounds).
 RANGES: dict[str, Range] = {
     "view_resolution": Range(16, 1024), "blend_k": Range(1, 64), "texture_resolution": Range(16, 8192),

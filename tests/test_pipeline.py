@@ -152,7 +152,7 @@ def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice
     uniform = config(tiny_lmrm, init="pbr", variation="uniform").tto_config()
     assert uniform == replace(base.tto_config(), consistency_rho_value=UNIFORM_RHO_VALUE)
     choose = config(tiny_lmrm, init="pbr", variation="choose")
-    assert choose.tto_config() == replace(base.tto_config(), select_uniform=True)
+    assert choose.tto_config() == replace(base.tto_config(), select_uniform=True, select_reuse_start=True)
     assert config(tiny_lmrm, init="pbr") == choose  # the default
     for init in ("random", "lmrm"):
         with pytest.raises(ValueError, match="variation='uniform'"):
@@ -400,12 +400,16 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    default = variant_config("pbr_start_default_tuned_0001", TTOConfig.preset("cpu"))
+    default = variant_config("pbr_start_default_reuse", TTOConfig.preset("cpu"))
     assert default == extraction
+    # the default before the TTO after the choice went on from the choice's start (2026-11-28)
+    tuned = variant_config("pbr_start_default_tuned_0001", extraction)
+    assert tuned == replace(extraction, select_reuse_start=False)
     # the default before the decoder was fine-tuned (2026-11-27)
     frozen = variant_config("pbr_start_consistent_select_uniform_f05_alt_v4_m3", extraction)
-    assert frozen == replace(extraction, train_decoder=False, decoder_lr=TTOConfig().decoder_lr)
-    textured = replace(extraction, select_uniform=False)
+    assert frozen == replace(extraction, train_decoder=False, decoder_lr=TTOConfig().decoder_lr,
+                             select_reuse_start=False)
+    textured = replace(extraction, select_uniform=False, select_reuse_start=False)
     assert ExtractConfig.preset("cpu", variation="textured").tto_config() == textured
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
     assert variant_config("pbr_start_consistent_01", extraction) == replace(textured, alternative_basis="",

@@ -476,6 +476,52 @@ def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(
             replace(cfg, **bad).check()
 
 
+def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, truth_prediction, tmp_path, monkeypatch):
+    """select_reuse_start: after the choice, the TTO with the chosen config is its neural phase alone, on every
+    photo, from the start the choice made (the PBR phase on all photos but the held-out ones, fitted once for both
+    candidates and the TTO after): no second PBR phase and no second start fit. The choice is the one the TTO that
+    runs both phases again makes; the progress counts the steps it runs; stopped in the last phase and resumed, the
+    result is bit for bit the same; with photo exposures, the held-out photos' start at 1."""
+    from neumatex_core.tto import pbr_start, solve
+
+    calls = []
+    fit = pbr_start.fit_start_to_pbr
+
+    def counted(*a, **k):
+        calls.append(1)
+        return fit(*a, **k)
+
+    monkeypatch.setattr(pbr_start, "fit_start_to_pbr", counted)
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=0.5,
+                           select_reuse_start=True, pbr_fit_steps=50)  # fmt: skip
+    assert cfg.run_steps() == 4 + 2 * 2 + 4
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2),
+            example.basis)  # fmt: skip
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    steps: list[int] = []
+    reused = solve(cfg, *args, checkpoint_dir=tmp_path / "a", progress=lambda s, n, row: steps.append(s))
+    assert steps == list(range(1, cfg.run_steps() + 1)) and reused.finished
+    assert len(calls) == 1  # one start fit for the two candidates and the TTO after
+    names = {p.name for p in (tmp_path / "a").iterdir()}
+    assert "checkpoint.pt" in names and "checkpoint_pbr.pt" not in names  # no second PBR phase
+    assert [r["phase"] for r in reused.history] == [0.0] * 4 + [1.0] * 4
+    again = solve(replace(cfg, select_reuse_start=False), *args)
+    assert len(calls) == 3  # the choice's fit, then the TTO after fits its own start again
+    assert again.selection == reused.selection and reused.selection["validation_photos"] == 4.0
+    assert not torch.equal(again.params.tensor, reused.params.tensor)  # its start came from every photo's PBR fit
+    # stopped two steps before the end, then resumed from the checkpoints: the same result
+    seen: list[int] = []
+    stopped = solve(cfg, *args, checkpoint_dir=tmp_path / "b", progress=lambda s, n, row: seen.append(s),
+                    should_stop=lambda: bool(seen) and seen[-1] >= cfg.run_steps() - 2)  # fmt: skip
+    assert not stopped.finished and seen[-1] == cfg.run_steps() - 2
+    resumed = solve(cfg, *args, checkpoint_dir=tmp_path / "b")
+    assert resumed.finished and torch.equal(resumed.params.tensor, reused.params.tensor)
+    exposed = solve(replace(cfg, photo_exposure=True), *args)
+    assert exposed.exposure is not None and len(exposed.exposure) == example.photos.count
+
+
 def test_bsdf_refinement_recovers_what_the_encoder_conversion_loses(example, truth_prediction):
     """The encoder conversion (pbr_to_neural) of a rough grey metal keeps ~60% of its albedo in the shipped basis;
     the BSDF-space refinement of the start (refine_to_pbr_bsdf) brings the neural material's hemispherical albedo

@@ -111,10 +111,15 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_tuned": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                                 "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
                                 "decoder_lr": 0.01},
-    # (the extraction's default since 2026-11-27, design note 39)
+    # (the extraction's default from 2026-11-27 to 2026-11-28, design note 39)
     "pbr_start_default_tuned_0001": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                                      "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
                                      "decoder_lr": 0.001},
+    # the same, the TTO after the choice going on from the choice's start (the extraction's default since
+    # 2026-11-28, design note 40)
+    "pbr_start_default_reuse": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
+                                "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
+                                "decoder_lr": 0.001, "select_reuse_start": True},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,
@@ -191,7 +196,8 @@ TABLES: dict[str, list[str]] = {
 # t2c, t2f, t3c, t3d, ours_pbr_start.)
 REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of",
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
-                      "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr")
+                      "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr",
+                      "select_reuse_start")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

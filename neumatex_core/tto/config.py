@@ -153,6 +153,12 @@ class TTOConfig:
     # full-length one on all 8 Cycles captures and 6 benchmark objects, so the results were bit for bit the same, in
     # 1200 steps instead of 1600 (the demo's TTO 129 s instead of 153 s; docs/design-notes.md item 37)
     select_fraction: float = 0.5
+    # select_anchor / select_uniform: the TTO with the chosen config starts its neural phase on every photo from the
+    # start the choice made (the PBR phase on all photos but the held-out ones, expressed in the chosen basis)
+    # instead of running the PBR phase and the start's fit again; that saves a PBR phase and a start fit (the demo's
+    # TTO 180 s -> 146 s), and the held-out photos still reach the result through the neural phase
+    # (docs/design-notes.md item 40). Without a choice it changes nothing.
+    select_reuse_start: bool = False
     # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
     # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
     # start (consistency_of "change"; "value": end alike), so the neural phase may move a material everywhere at once
@@ -233,9 +239,11 @@ class TTOConfig:
     def run_steps(self) -> int:
         """Adam steps the TTO runs (its progress counts these): total_steps, and with select_anchor or
         select_uniform first the choice (the PBR phase and two neural phases of select_steps on all photos but the
-        held-out ones)."""
-        choice = self.pbr_steps + 2 * self.select_steps() if self.select_anchor or self.select_uniform else 0
-        return choice + self.total_steps()
+        held-out ones), after which select_reuse_start runs the neural phase alone."""
+        if not (self.select_anchor or self.select_uniform):
+            return self.total_steps()
+        choice = self.pbr_steps + 2 * self.select_steps()
+        return choice + (self.steps if self.select_reuse_start else self.total_steps())
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -302,6 +302,30 @@ def alternative_wins(pbr_psnr: float, own: float, other: float | None, margin: f
     return None if other is None else other - own > margin
 
 
+@dataclass
+class FittedStart:
+    """`fit_start`'s result: the neural triplane `params` fitted to the PBR solution, on `mesh` (None: the
+    caller's), with G-buffer error `mse` (`fit_start_to_pbr`)."""
+
+    params: NeuralTriplane
+    mesh: Mesh | None
+    mse: float
+
+
+def fit_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
+              tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis,
+              anchor_available: bool) -> FittedStart:
+    """The PBR solution `first` expressed in `basis`: the neural phase's problem (`_neural_phase`: the same planes to
+    start from, the same fit), its planes fitted by `fit_start_to_pbr`."""
+    neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
+                            alternative_basis="")
+    problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
+    assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
+    mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
+                           config.pbr_bsdf_fit_steps)
+    return FittedStart(problem.params, problem.mesh, mse)
+
+
 def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
                  scoring: PhotoSet | None, tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis,
                  anchor_available: bool) -> BasisStart | None:
@@ -320,17 +344,11 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
     if alternative.basis_id == basis.basis_id:
         return None
     scored = photos.subset(spread_frames(photos.count, config.validation_photos)) if scoring is None else scoring
-    # the neural phase's problem (tto/pbr_start.py `_neural_phase`): same planes to start from, same fit
-    neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
-                            alternative_basis="")
 
     def start_in(candidate: NeuralBasis) -> tuple[torch.Tensor, float, float]:
-        problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, candidate, anchor_available)
-        assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
-        mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, candidate, config.seed,
-                               config.pbr_fit_steps, config.pbr_bsdf_fit_steps)
-        score = photo_psnr(problem.params, problem.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
-        return problem.params.tensor.detach().clone(), mse, score
+        made = fit_start(config, first, mesh, envmap, photos, tonemap, prediction, candidate, anchor_available)
+        score = photo_psnr(made.params, made.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
+        return made.params.tensor.detach().clone(), made.mse, score
 
     pbr_psnr = photo_psnr(first.params, first.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
     planes, mse, own = start_in(basis)
@@ -378,7 +396,9 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     (config.select_steps() steps), each result scored on the held-out photos (`photo_psnr`, one seed for both); the
     first (more constrained) candidate stays unless the second gains more than config.select_margin_db. Then the TTO
     with that choice on every photo, so the result is exactly what the plain TTO with the chosen config gives (the
-    held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB). Its `selection`
+    held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB); or, with
+    config.select_reuse_start, its neural phase alone on every photo from the start the choice made (the held-out
+    photos then reach the result through the neural phase only; docs/design-notes.md item 40). Its `selection`
     records both scores and the choice. A capture with no photos to hold out gets the choice's fallback candidate
     (`Choice.fallback`; its selection's validation_photos is 0)."""
     checkpoint = partial(_checkpoint, checkpoint_dir)
@@ -386,15 +406,15 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     choice = CHOICES[switch]
     candidates = choice.candidates(replace(config, select_anchor=False, select_uniform=False))
     total = config.run_steps()
-    done = total - config.total_steps()  # the choice's steps; the chosen TTO's follow
     try:
         held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
     except ValueError:  # too few photos, or none with a neighbour: no choice to make, the fallback's plain TTO
         held_out = []
     chosen, selection = choice.fallback, {choice.kept_key: float(choice.fallback == 0), "validation_photos": 0.0}
     start: BasisStart | None = None
+    first: TTOResult | None = None
+    fit = [i for i in range(photos.count) if i not in held_out]
     if held_out:
-        fit = [i for i in range(photos.count) if i not in held_out]
         fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
         first = _pbr_phase(candidates[0], mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available,
                            _offset(progress, 0, total, 0.0), should_stop, checkpoint("select_pbr.pt"))
@@ -403,12 +423,15 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         # the basis is chosen once, here, for both candidates and the TTO that follows
         start = choose_basis(config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction, basis,
                              anchor_available)  # fmt: skip
+        if start is None:  # no alternative basis: the start in `basis`, fitted once for both candidates
+            made = fit_start(config, first, mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available)
+            start = BasisStart(basis, made.params.tensor.detach().clone(), made.mse, False, {})
         scores = []
         steps = config.select_steps()
         for k, candidate in enumerate(candidates):
             phase_progress = _offset(progress, config.pbr_steps + k * steps, total, 1.0)
             result = _neural_phase(replace(candidate, steps=steps), first, mesh, envmap, fit_photos, tonemap,
-                                   prediction, basis if start is None else start.basis, anchor_available, truth,
+                                   prediction, start.basis, anchor_available, truth,
                                    phase_progress, should_stop, checkpoint(f"select_{choice.names[k]}.pt"),
                                    start)  # fmt: skip
             if not result.finished:
@@ -426,8 +449,19 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         final_config = replace(final_config, alternative_basis="",
                                basis=start.basis.basis_id if start.switched else final_config.basis)
         final_basis = start.basis
-    final = solve(final_config, mesh, envmap, photos, tonemap, prediction, final_basis, anchor_available, truth,
-                  _offset(progress, done, total, 2.0), should_stop, checkpoint_dir)  # fmt: skip
+    if first is not None and start is not None and config.select_reuse_start:  # the neural phase, from the start
+        if first.exposure is not None:  # the held-out photos' exposures start at 1 (the fitted ones' geometric mean)
+            scales = [1.0] * photos.count
+            for k, f in enumerate(fit):
+                scales[f] = first.exposure[k]
+            first = replace(first, exposure=scales)
+        final = _neural_phase(final_config, first, mesh, envmap, photos, tonemap, prediction, final_basis,
+                              anchor_available, truth, _offset(progress, total - config.steps, total, 2.0),
+                              should_stop, checkpoint("checkpoint.pt"), start)  # fmt: skip
+    else:
+        final = solve(final_config, mesh, envmap, photos, tonemap, prediction, final_basis, anchor_available, truth,
+                      _offset(progress, total - config.total_steps(), total, 2.0), should_stop,
+                      checkpoint_dir)  # fmt: skip
     final.selection = selection
     final.basis = start.basis if start is not None and start.switched else final.basis
     return final
