@@ -77,8 +77,9 @@ NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_co
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
 # into a uniform material's base colour (Cycles captures, relit - PBR: sheen +2.09, coat +3.71 dB, against +1.26,
 # +2.98 for "textured"), and costs a textured object 1.2-1.8 dB; "choose" (the default since 2026-11-27) tries both
-# on all photos but four and keeps uniform unless textured reproduces those clearly better (docs/design-notes.md,
-# items 35-37). Without a PBR start there is nothing to choose: "choose" is then "textured" (ExtractConfig.tto_config).
+# on all photos but four and keeps uniform unless textured reproduces those clearly better, then goes on from the
+# choice's start on every photo (docs/design-notes.md, items 35-37 and 40). Without a PBR start there is nothing to
+# choose: "choose" is then "textured" (ExtractConfig.tto_config).
 VARIATIONS: dict[str, dict[str, Any]] = {"textured": {}, "uniform": {"consistency_rho_value": UNIFORM_RHO_VALUE},
                                          "choose": {"select_uniform": True, "select_reuse_start": True}}
 # The allowed values of ExtractConfig's numeric fields (ExtractConfig.check; the job service's bounds).

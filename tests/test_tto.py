@@ -476,15 +476,12 @@ def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(
             replace(cfg, **bad).check()
 
 
-def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, truth_prediction, tmp_path, monkeypatch):
-    """select_reuse_start: after the choice, the TTO with the chosen config is its neural phase alone, on every
-    photo, from the start the choice made (the PBR phase on all photos but the held-out ones, fitted once for both
-    candidates and the TTO after): no second PBR phase and no second start fit. The choice is the one the TTO that
-    runs both phases again makes; the progress counts the steps it runs; stopped in the last phase and resumed, the
-    result is bit for bit the same; with photo exposures, the held-out photos' start at 1."""
-    from neumatex_core.tto import pbr_start, solve
+@pytest.fixture
+def start_fits(monkeypatch) -> list[int]:
+    """One entry per call of tto/pbr_start.py `fit_start_to_pbr` (1500 Adam steps each at the cpu preset)."""
+    from neumatex_core.tto import pbr_start
 
-    calls = []
+    calls: list[int] = []
     fit = pbr_start.fit_start_to_pbr
 
     def counted(*a, **k):
@@ -492,6 +489,18 @@ def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, trut
         return fit(*a, **k)
 
     monkeypatch.setattr(pbr_start, "fit_start_to_pbr", counted)
+    return calls
+
+
+def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, truth_prediction, tmp_path, start_fits):
+    """select_reuse_start: after the choice, the TTO with the chosen config is its neural phase alone, on every
+    photo, from the start the choice made (the PBR phase on all photos but the held-out ones, fitted once for both
+    candidates and the TTO after): no second PBR phase and no second start fit. The choice is the one the TTO that
+    runs both phases again makes; the progress counts the steps it runs; stopped in the last phase and resumed, the
+    result is bit for bit the same; with photo exposures, the held-out photos' start at 1."""
+    from neumatex_core.tto import solve
+
+    calls = start_fits
     cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
                            lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=0.5,
                            select_reuse_start=True, pbr_fit_steps=50)  # fmt: skip
@@ -702,7 +711,7 @@ def test_solve_runs_the_neural_phase_in_the_basis_it_chose(example, truth_predic
     assert {"uniform_kept", "basis_pbr_psnr", "basis_start_psnr"} <= set(choosing.selection)
 
 
-def test_a_fine_tuned_decoder_starts_from_the_fit_the_basis_choice_made(example, truth_prediction, monkeypatch):
+def test_a_fine_tuned_decoder_starts_from_the_fit_the_basis_choice_made(example, truth_prediction, start_fits):
     """With train_decoder, the start's fit leaves the decoder as it is (at the fit's learning rate it saturated:
     docs/design-notes.md item 39), so the planes that `choose_basis` fitted are the neural phase's start, not fitted
     again (1500 Adam steps each time), and the result is bit for bit the plain TTO's, which fits its own start; the
@@ -710,14 +719,7 @@ def test_a_fine_tuned_decoder_starts_from_the_fit_the_basis_choice_made(example,
     from neumatex_core.materials.neural_basis import BASIS_V4
     from neumatex_core.tto import pbr_start, solve
 
-    calls = []
-    fit = pbr_start.fit_start_to_pbr
-
-    def counted(*a, **k):
-        calls.append(1)
-        return fit(*a, **k)
-
-    monkeypatch.setattr(pbr_start, "fit_start_to_pbr", counted)
+    calls = start_fits
     cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
                            lambda_reg=0.0, lambda_consistency=1.0, train_decoder=True, pbr_fit_steps=50)  # fmt: skip
     args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2))
