@@ -49,7 +49,7 @@ from neumatex_core.eval.suite import (  # noqa: E402
     paired_values,
     select_objects,
 )
-from neumatex_core.eval.variants import variant_config  # noqa: E402
+from neumatex_core.eval.variants import VARIANTS, variant_config  # noqa: E402
 from neumatex_core.materials.neural_basis import BASIS_V4, load_basis  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig  # noqa: E402
 from neumatex_core.tto.pbr_start import alternative_wins  # noqa: E402
@@ -90,9 +90,11 @@ def stored_rows() -> dict[str, dict[str, dict[str, float]]]:
     return rows
 
 
-def basis_scores() -> dict[str, dict[str, float]]:
+def basis_scores(variant: str) -> dict[str, dict[str, float]]:
     """object -> the basis choice's scores there (dB: pbr, start in the default basis, start in the alternative when
-    known): bench/results/basis_start.jsonl's rows (v4 as the alternative), then this file's basis records."""
+    known): bench/results/basis_start.jsonl's rows (v4 as the alternative), then the basis records of this file's
+    rows of variants that differ from `variant` in the basis choice alone (another PBR phase, e.g. one with its
+    head fine-tuned, scores other starts)."""
     scores: dict[str, dict[str, float]] = {}
     path = RESULTS / "basis_start.jsonl"
     for line in path.read_text().splitlines() if path.is_file() else []:
@@ -101,9 +103,11 @@ def basis_scores() -> dict[str, dict[str, float]]:
                                                  "alternative": row[BASIS_V4]}  # fmt: skip
     own = RESULTS / "variants_clean.jsonl"
     for line in own.read_text().splitlines() if own.is_file() else []:
-        c = json.loads(line).get("choice", {})
-        if "choice_basis_pbr_psnr" in c:
-            known = scores.setdefault(json.loads(line)["object"], {})
+        row = json.loads(line)
+        c = row.get("choice", {})
+        same_phase = row["variant"] in VARIANTS and differs_only_in_basis(variant, row["variant"])
+        if "choice_basis_pbr_psnr" in c and same_phase:
+            known = scores.setdefault(row["object"], {})
             known.update({"pbr": c["choice_basis_pbr_psnr"], "own": c["choice_basis_start_psnr"]})
             if "choice_basis_alternative_psnr" in c:
                 known["alternative"] = c["choice_basis_alternative_psnr"]
@@ -156,8 +160,8 @@ def family_table(res: Results, variant: str, base: str, families: dict[str, list
 def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None,
               by_family: tuple[Path, str] | None = None) -> int:
     stored = stored_rows()
-    scores = basis_scores()
     for variant in variants if fill_from else []:
+        scores = basis_scores(variant)
         mine = stored.setdefault(variant, {})
         for o in sorted(set().union(*(stored.get(b, {}) for b in fill_from)) - set(mine)):
             wanted = basis_choice(variant, scores.get(o))
