@@ -149,14 +149,12 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
                        _offset(progress, 0, total, 0.0), should_stop, checkpoint("checkpoint_pbr.pt"))
     if not first.finished:
         return first
-    start = choose_basis(config, first, mesh, envmap, photos, None, tonemap, prediction, basis, anchor_available)
-    result = _neural_phase(config, first, mesh, envmap, photos, tonemap, prediction,
-                           basis if start is None else start.basis, anchor_available, truth,
-                           _offset(progress, config.pbr_steps, total, 1.0), should_stop, checkpoint("checkpoint.pt"),
-                           start)  # fmt: skip
-    if start is not None:
-        result.selection = {**result.selection, **start.record}
-        result.basis = start.basis if start.switched else None
+    start = neural_start(config, first, mesh, envmap, photos, None, tonemap, prediction, basis, anchor_available)
+    result = _neural_phase(config, first, mesh, envmap, photos, tonemap, prediction, start.basis, anchor_available,
+                           truth, _offset(progress, config.pbr_steps, total, 1.0), should_stop,
+                           checkpoint("checkpoint.pt"), start)  # fmt: skip
+    result.selection = {**result.selection, **start.record}
+    result.basis = start.basis if start.switched else None
     return result
 
 
@@ -185,9 +183,9 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
 def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
                   tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool,
                   truth: Truth | None, progress: Progress | None, should_stop: Callable[[], bool] | None,
-                  checkpoint: Path | None, start: BasisStart | None = None) -> TTOResult:
-    """Phase two: the neural triplane fitted to the PBR solution `first` (or given that fit, `start`, made in
-    `basis` by `choose_basis`), then `config.steps` steps of neural TTO (anchored to that start with weight
+                  checkpoint: Path | None, start: BasisStart) -> TTOResult:
+    """Phase two: the neural triplane from `start`, the PBR solution `first` fitted in `basis` (`neural_start`),
+    then `config.steps` steps of neural TTO (anchored to that start with weight
     config.lambda_reg when reg is "start"). The history holds both phases."""
     # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
@@ -197,13 +195,9 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
         problem.exposure.start_at(first.exposure)
-    if start is not None:  # the planes choose_basis fitted (the decoder is not fitted: `fit_planes`)
-        with torch.no_grad():
-            problem.params.tensor.copy_(start.planes)
-        start_mse = start.mse
-    else:
-        start_mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed,
-                                     config.pbr_fit_steps, config.pbr_bsdf_fit_steps)
+    with torch.no_grad():  # the fitted planes (the decoder is not fitted: `fit_planes`)
+        problem.params.tensor.copy_(start.planes)
+    start_mse = start.mse
     if config.reg == "start" and (config.lambda_reg > 0 or config.lambda_consistency > 0):  # weight 1: the start
         points, uv = problem.mesh.sample_surface(config.reg_pool, seed=config.seed)
         points = points.to(problem.params.tensor.device)
@@ -336,7 +330,7 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
     config.basis_margin_db to PBR, the basis cannot hold the PBR solution (the default basis turns a coloured metal
     grey: Cycles metals 7 dB below PBR), so the start is also made in the alternative basis, which is taken when it
     scores better than the start in `basis` by more than basis_margin_db. None without an alternative (or when it
-    is `basis`): the neural phase fits its own start, as before."""
+    is `basis`): `neural_start` then fits the start in `basis` alone."""
     if not config.alternative_basis:
         return None
     device = str(first.params.tensor.device)
@@ -361,6 +355,18 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
             chosen = BasisStart(alternative, other_planes, other_mse, True, record)
     record["basis_switched"] = float(chosen.switched)
     return chosen
+
+
+def neural_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
+                 scoring: PhotoSet | None, tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis,
+                 anchor_available: bool) -> BasisStart:
+    """The neural phase's start, fitted once per PBR solution `first`: `choose_basis`'s, or without an alternative
+    basis the solution fitted in `basis` (`fit_start`; an empty record)."""
+    chosen = choose_basis(config, first, mesh, envmap, photos, scoring, tonemap, prediction, basis, anchor_available)
+    if chosen is not None:
+        return chosen
+    made = fit_start(config, first, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
+    return BasisStart(basis, made.params.tensor.detach().clone(), made.mse, False, {})
 
 
 @dataclass(frozen=True)
@@ -421,11 +427,8 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         if not first.finished:
             return first
         # the basis is chosen once, here, for both candidates and the TTO that follows
-        start = choose_basis(config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction, basis,
+        start = neural_start(config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction, basis,
                              anchor_available)  # fmt: skip
-        if start is None:  # no alternative basis: the start in `basis`, fitted once for both candidates
-            made = fit_start(config, first, mesh, envmap, fit_photos, tonemap, prediction, basis, anchor_available)
-            start = BasisStart(basis, made.params.tensor.detach().clone(), made.mse, False, {})
         scores = []
         steps = config.select_steps()
         for k, candidate in enumerate(candidates):
