@@ -15,8 +15,9 @@ bench/results/random_pose_e2e.jsonl (its "preset/<variant>" rows: the same harne
 latest per object. Needs the objects' references (`neumatex references`).
 
 `--fill-from B,C` (with --summarise) completes each summarised variant on the objects where it has no row with the
-row of the first of B, C, ... whose config differs from it only in the alternative basis (or its margin) and whose
-choice of basis there is the same (`alternative_basis`, docs/design-notes.md item 38): such variants give the same
+row of the first of B, C, ... whose config differs from it only in the alternative basis (or its margin; where the
+default basis is chosen, also in `decoder_in_other_basis`, which acts only in another) and whose choice of basis there
+is the same (`alternative_basis`, docs/design-notes.md item 38): such variants give the same
 result bit for bit where they choose the same basis. The choice is worked out from the scores of
 bench/results/basis_start.jsonl and from the basis records of this file's rows, so e.g. the default's table covers
 objects that only a neighbouring variant was run on.
@@ -126,14 +127,17 @@ def basis_choice(variant: str, known: dict[str, float] | None) -> str | None:
     return None if wins is None else tto.alternative_basis if wins else "default"
 
 
-def differs_only_in_basis(variant: str, other: str) -> bool:
-    """Whether the configs of `variant` and `other` are the same but for the alternative basis and its margin: only
-    then does `other`'s row stand in for `variant`'s where both choose the same basis (--fill-from)."""
+def differs_only_in_basis(variant: str, other: str, in_default_basis: bool = True) -> bool:
+    """Whether the configs of `variant` and `other` are the same but for the alternative basis and its margin (and,
+    `in_default_basis`, for what the neural phase does in another basis: `decoder_in_other_basis`): only then does
+    `other`'s row stand in for `variant`'s where both choose the same basis (--fill-from)."""
     base = ExtractConfig.preset("cpu").tto
     a, b = variant_config(variant, base), variant_config(other, base)
     if a is None or b is None:
         return a is b
-    unbased = {"alternative_basis": "", "basis_margin_db": 0.0}
+    unbased: dict[str, Any] = {"alternative_basis": "", "basis_margin_db": 0.0}
+    if in_default_basis:
+        unbased["decoder_in_other_basis"] = True
     return replace(a, **unbased) == replace(b, **unbased)
 
 
@@ -166,7 +170,8 @@ def summarise(variants: list[str], against: list[str], fill_from: list[str] | No
         for o in sorted(set().union(*(stored.get(b, {}) for b in fill_from)) - set(mine)):
             wanted = basis_choice(variant, scores.get(o))
             source = next((b for b in fill_from if o in stored.get(b, {}) and wanted is not None
-                           and differs_only_in_basis(variant, b) and basis_choice(b, scores.get(o)) == wanted),
+                           and differs_only_in_basis(variant, b, wanted == "default")
+                           and basis_choice(b, scores.get(o)) == wanted),
                           None)  # fmt: skip
             if source is not None:
                 mine[o] = stored[source][o]

@@ -400,19 +400,21 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    default = variant_config("pbr_start_default_reuse", TTOConfig.preset("cpu"))
+    default = variant_config("pbr_start_default_alt_frozen", TTOConfig.preset("cpu"))
     assert default == extraction
+    # the default before the material decoder was left frozen in basis v4 (2026-11-28)
+    reuse = variant_config("pbr_start_default_reuse", extraction)
+    assert reuse == replace(extraction, decoder_in_other_basis=True)
     # the default before the TTO after the choice went on from the choice's start (2026-11-28)
     tuned = variant_config("pbr_start_default_tuned_0001", extraction)
-    assert tuned == replace(extraction, select_reuse_start=False)
+    assert tuned == replace(reuse, select_reuse_start=False)
     # the default before the decoder was fine-tuned (2026-11-27)
     frozen = variant_config("pbr_start_consistent_select_uniform_f05_alt_v4_m3", extraction)
-    assert frozen == replace(extraction, train_decoder=False, decoder_lr=TTOConfig().decoder_lr,
-                             select_reuse_start=False)
+    assert frozen == replace(reuse, train_decoder=False, decoder_lr=TTOConfig().decoder_lr, select_reuse_start=False)
     textured = replace(extraction, select_uniform=False, select_reuse_start=False)
     assert ExtractConfig.preset("cpu", variation="textured").tto_config() == textured
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
-    assert variant_config("pbr_start_consistent_01", extraction) == replace(textured, alternative_basis="",
-                                                                            train_decoder=False, decoder_lr=0.1)
+    assert variant_config("pbr_start_consistent_01", extraction) == replace(
+        textured, alternative_basis="", train_decoder=False, decoder_lr=0.1, decoder_in_other_basis=True)
     assert variant_config("pbr", extraction).alternative_basis == ""  # type: ignore[union-attr]
     assert not variant_config("pbr", extraction).train_decoder  # type: ignore[union-attr]

@@ -120,6 +120,17 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_reuse": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                                 "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
                                 "decoder_lr": 0.001, "select_reuse_start": True},
+    # the same with both decoders frozen (the design note 38 default going on from the choice's start): on the Cycles
+    # metals, is the fine-tuning what costs relighting?
+    "pbr_start_default_reuse_frozen": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
+                                       "alternative_basis": BASIS_V4, "basis_margin_db": 3.0,
+                                       "select_reuse_start": True},
+    # the same with the neural phase's decoder frozen where it runs in basis v4 (the extraction's default since
+    # 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.7-2.3 dB relit)
+    "pbr_start_default_alt_frozen": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
+                                     "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
+                                     "decoder_lr": 0.001, "select_reuse_start": True,
+                                     "decoder_in_other_basis": False},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,
@@ -197,7 +208,7 @@ TABLES: dict[str, list[str]] = {
 REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of",
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
                       "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr",
-                      "select_reuse_start")
+                      "select_reuse_start", "decoder_in_other_basis")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

@@ -121,6 +121,10 @@ class TTOConfig:
     average_tail: float = 0.0
     train_decoder: bool = False
     decoder_lr: float = 0.1
+    # init "pbr" with train_decoder: whether the neural phase fine-tunes its decoder where it runs in a basis other
+    # than the default (alternative_basis taken, or `basis`) too; False: there only the PBR phase does (the LMRM's
+    # material decoder was trained for the default basis; docs/design-notes.md item 41)
+    decoder_in_other_basis: bool = True
     # "" = the default neural basis; another installed basis (materials/data/bases/) by id. The LMRM predicts the
     # default basis's latents, so another basis needs a start and an anchor that do not come from it.
     basis: str = ""

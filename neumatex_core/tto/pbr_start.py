@@ -188,9 +188,11 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
     then `config.steps` steps of neural TTO (anchored to that start with weight
     config.lambda_reg when reg is "start"). The history holds both phases."""
     # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
+    other_basis = start.switched or bool(config.basis)
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
                             lr=config.lr * config.neural_lr_scale, select_anchor=False,
-                            select_uniform=False, alternative_basis="")
+                            select_uniform=False, alternative_basis="",
+                            train_decoder=config.train_decoder and (config.decoder_in_other_basis or not other_basis))
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     if problem.exposure is not None and first.exposure is not None:  # the photos' exposures go on from phase one
