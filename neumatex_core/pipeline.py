@@ -71,7 +71,7 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # its material decoder) at 1/1000 of the planes' learning rate: the frozen decoder caps what the triplane can
 # express (item 24); on the 12 benchmark objects measured, clean PathTrace +0.86 dB over the frozen one, and on
 # the Cycles sheens +9.31 dB relit over PBR (item 39). The material decoder is tuned only in the default basis, the
-# one the LMRM trained it for: tuned in basis v4 it cost the Cycles metals 0.7-2.3 dB relit (item 41).
+# one the LMRM trained it for: tuned in basis v4 it cost the Cycles metals 0.6-2.3 dB relit (item 41).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
                                    "decoder_in_other_basis": False}

@@ -686,7 +686,7 @@ def test_choose_basis_takes_the_alternative_where_the_default_cannot_hold_the_pb
 
 def test_the_decoder_is_fine_tuned_in_the_default_basis_only_unless_asked(example, truth_prediction):
     """decoder_in_other_basis off: the neural phase fine-tunes the LMRM's material decoder only in the default
-    basis, the one it was trained for (in basis v4 the fine-tuning cost the Cycles metals 0.7-2.3 dB relit:
+    basis, the one it was trained for (in basis v4 the fine-tuning cost the Cycles metals 0.6-2.3 dB relit:
     docs/design-notes.md item 41). The PBR phase tunes its head either way. Where the default basis is kept the result
     is bit for bit the tuned one; where v4 is taken (by the choice, or named as `basis`) the material decoder stays
     the LMRM's."""

@@ -27,7 +27,8 @@ outside the tables (item 35): the default's weight at 0.03 and 0.3, the default 
 latent's values compared too (`consistency_rho_value`, `consistency_latent_value`), with a wider sigma, in bases v3
 and v4, and with twice the PBR phase; the default or the base colour's values at 0.3 chosen on held-out photos
 (`select_uniform`, item 36). Tuned (issue 14, item 39): the default with the triplane's material decoder fine-tuned
-by the TTO too (`train_decoder`) at three learning rates.
+by the TTO too (`train_decoder`) at three learning rates; the PBR baseline with its head tuned; the default with the
+decoders frozen, and with the material decoder frozen where the neural phase runs in basis v4 (item 41).
 """
 
 from __future__ import annotations
@@ -115,8 +116,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_tuned_0001": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                                      "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
                                      "decoder_lr": 0.001},
-    # the same, the TTO after the choice going on from the choice's start (the extraction's default since
-    # 2026-11-28, design note 40)
+    # the same, the TTO after the choice going on from the choice's start (the extraction's default on the morning
+    # of 2026-11-28, design note 40)
     "pbr_start_default_reuse": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                                 "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
                                 "decoder_lr": 0.001, "select_reuse_start": True},
@@ -125,8 +126,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_reuse_frozen": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                                        "alternative_basis": BASIS_V4, "basis_margin_db": 3.0,
                                        "select_reuse_start": True},
-    # the same with the neural phase's decoder frozen where it runs in basis v4 (the extraction's default since
-    # 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.7-2.3 dB relit)
+    # pbr_start_default_reuse with the material decoder frozen where it runs in basis v4 (the extraction's default since
+    # 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.6-2.3 dB relit)
     "pbr_start_default_alt_frozen": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                                      "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
                                      "decoder_lr": 0.001, "select_reuse_start": True,
