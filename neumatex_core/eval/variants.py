@@ -44,6 +44,12 @@ OURS: dict[str, Any] = {"field": "triplane", "init": "lmrm", "reg": "uncertainty
 # move with pipeline.NEURAL_FROM_PBR
 CONSISTENT_01: dict[str, Any] = {**OURS, "init": "pbr", "reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1}
 
+# that default choosing uniform or textured after half the neural steps, with basis v4 for the start where the
+# default basis cannot hold the PBR solution (margin 3 dB): the extraction's default of 2026-11-27 (design note 38),
+# on which the later defaults build
+CHOOSE_V4: dict[str, Any] = {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
+                             "alternative_basis": BASIS_V4, "basis_margin_db": 3.0}
+
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
     "pbr": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr"},
@@ -94,9 +100,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_consistent_select_uniform_f05_alt_v4": {**CONSISTENT_01, "select_uniform": True,
                                                        "select_fraction": 0.5, "alternative_basis": BASIS_V4,
                                                        "basis_margin_db": 2.0},
-    "pbr_start_consistent_select_uniform_f05_alt_v4_m3": {**CONSISTENT_01, "select_uniform": True,
-                                                          "select_fraction": 0.5, "alternative_basis": BASIS_V4,
-                                                          "basis_margin_db": 3.0},
+    "pbr_start_consistent_select_uniform_f05_alt_v4_m3": CHOOSE_V4,
     # the default with its triplane's material decoder fine-tuned too (`train_decoder`: the frozen LMRM decoder caps
     # what the triplane can express, docs/design-notes.md items 24 and 39), at the preset's decoder_lr and at 1/10 of
     # it. These two ran (2026-11-27, 8 objects) while the start's fit (tto/pbr_start.py `fit_planes`) trained the
@@ -104,34 +108,21 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # decoder frozen since, which the "tuned" variants below measure, at 1/10 and 1/100 of the preset's decoder_lr
     # (Adam moves every weight by about its learning rate per step whatever its gradient's size, so at 1/10 a noisy
     # gradient still shifted the whole material: object 21 lost 7 dB)
-    "pbr_start_default_decoder": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
-                                  "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True},
-    "pbr_start_default_decoder_lr001": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
-                                        "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
-                                        "decoder_lr": 0.01},
-    "pbr_start_default_tuned": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
-                                "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
-                                "decoder_lr": 0.01},
+    "pbr_start_default_decoder": {**CHOOSE_V4, "train_decoder": True},
+    "pbr_start_default_decoder_lr001": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.01},
+    "pbr_start_default_tuned": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.01},
     # (the extraction's default from 2026-11-27 to 2026-11-28, design note 39)
-    "pbr_start_default_tuned_0001": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
-                                     "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
-                                     "decoder_lr": 0.001},
+    "pbr_start_default_tuned_0001": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001},
     # the same, the TTO after the choice going on from the choice's start (the extraction's default on the morning
     # of 2026-11-28, design note 40)
-    "pbr_start_default_reuse": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
-                                "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
-                                "decoder_lr": 0.001, "select_reuse_start": True},
+    "pbr_start_default_reuse": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001, "select_reuse_start": True},
     # the same with both decoders frozen (the design note 38 default going on from the choice's start): on the Cycles
     # metals, is the fine-tuning what costs relighting?
-    "pbr_start_default_reuse_frozen": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
-                                       "alternative_basis": BASIS_V4, "basis_margin_db": 3.0,
-                                       "select_reuse_start": True},
-    # pbr_start_default_reuse with the material decoder frozen where it runs in basis v4 (the extraction's default since
-    # 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.6-2.3 dB relit)
-    "pbr_start_default_alt_frozen": {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
-                                     "alternative_basis": BASIS_V4, "basis_margin_db": 3.0, "train_decoder": True,
-                                     "decoder_lr": 0.001, "select_reuse_start": True,
-                                     "decoder_in_other_basis": False},
+    "pbr_start_default_reuse_frozen": {**CHOOSE_V4, "select_reuse_start": True},
+    # pbr_start_default_reuse with the material decoder frozen where it runs in basis v4 (the extraction's default
+    # since 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.6-2.3 dB relit)
+    "pbr_start_default_alt_frozen": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001,
+                                     "select_reuse_start": True, "decoder_in_other_basis": False},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,
