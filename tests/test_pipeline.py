@@ -402,6 +402,9 @@ def test_every_eval_table_is_described_and_valid():
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
     default = variant_config("pbr_start_default_alt_frozen", TTOConfig.preset("cpu"))
     assert default == extraction
+    # its choices scored with fewer samples, or on fewer pixels (tried 2026-11-28, design note 42)
+    assert variant_config("pbr_start_default_spp16", extraction) == replace(default, validation_spp=16)
+    assert variant_config("pbr_start_default_stride2", extraction) == replace(default, validation_stride=2)
     # the default before the material decoder was left frozen in basis v4 (2026-11-28)
     reuse = variant_config("pbr_start_default_reuse", extraction)
     assert reuse == replace(extraction, decoder_in_other_basis=True)

@@ -123,6 +123,13 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # since 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.6-2.3 dB relit)
     "pbr_start_default_alt_frozen": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001,
                                      "select_reuse_start": True, "decoder_in_other_basis": False},
+    # the same with its choices scored at 16 path samples per pixel instead of 32, or on every other pixel of the
+    # held-out photos: either would have saved 10-15 s of the demo's TTO; both were run on a few benchmark objects and
+    # Cycles captures and dropped (design note 42: the scores move by up to 1.1 dB, and choices flip)
+    "pbr_start_default_spp16": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001, "select_reuse_start": True,
+                                "decoder_in_other_basis": False, "validation_spp": 16},
+    "pbr_start_default_stride2": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001,
+                                  "select_reuse_start": True, "decoder_in_other_basis": False, "validation_stride": 2},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,
@@ -200,7 +207,7 @@ TABLES: dict[str, list[str]] = {
 REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of",
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
                       "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr",
-                      "select_reuse_start", "decoder_in_other_basis")
+                      "select_reuse_start", "decoder_in_other_basis", "validation_spp", "validation_stride")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

@@ -57,7 +57,8 @@ RANGES: dict[str, Range] = {
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
     "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100),
-    "select_fraction": Range(0, 1, lo_open=True), "basis_margin_db": Range(-100, 100)}  # fmt: skip
+    "select_fraction": Range(0, 1, lo_open=True), "basis_margin_db": Range(-100, 100),
+    "validation_spp": Range(2, 4096), "validation_stride": Range(1, 4096)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -147,6 +148,14 @@ class TTOConfig:
     select_anchor: bool = False
     validation_photos: int = 4
     select_margin_db: float = 0.25
+    # a choice (select_anchor / select_uniform, alternative_basis) scores its results (`photo_psnr`, two halves of
+    # each pixel's samples) at validation_spp path samples per pixel, on every validation_stride-th foreground pixel
+    # of the scored photos. Neither is cut to save time: at 16 samples the tonemap of a half's mean biases the score
+    # by an amount that depends on the material (a Cycles coat's PBR - start gap moved by 1.1 dB), and on every other
+    # pixel the choice between uniform and textured moved by up to 0.25 dB and flipped on benchmark object 6 (-1.4 dB
+    # PathTrace); docs/design-notes.md item 42
+    validation_spp: int = 32
+    validation_stride: int = 1
     # init "pbr", lambda_consistency > 0: the same choice between this config with the base colours' values compared
     # too (consistency_rho_value UNIFORM_RHO_VALUE: one uniform material, whose start carries the capture's light
     # painted into rho_d) and this config (several materials, or textured); uniform is kept unless textured

@@ -46,7 +46,6 @@ FIT_STEPS = 1500  # the default of TTOConfig.pbr_fit_steps
 FIT_LR = 0.05
 BSDF_FIT_BATCH = 4096  # surface points per step of `refine_to_pbr_bsdf`, one (wi, wo) pair each
 BSDF_FIT_LR = 0.02
-VALIDATION_SPP = 32  # path samples per held-out pixel when a choice scores the two results (two halves)
 VALIDATION_RAYS = 1 << 16  # rays per chunk of that render
 VALIDATION_NEIGHBOUR_DEG = 30.0  # a held-out photo needs a fitted one within this angle (the orbit's step is 21)
 
@@ -247,26 +246,28 @@ def validation_frames(cameras: Sequence[Camera], k: int, centre: np.ndarray,
 
 
 def photo_psnr(params: Parametrisation, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
-               config: TTOConfig, seed: int, spp: int = VALIDATION_SPP) -> float:
-    """Clean PSNR (dB, display values) of the material `params` against `photos`, rendered at every foreground
-    pixel (spp path samples each, the photos' given exposures): -10 log10 of the mean product of the errors of the
-    two halves of each pixel's samples (`photometric_loss` "decorrelated"), so our render's Monte Carlo noise,
-    which at these sample counts is larger than the difference between two materials, drops out. Deterministic in
-    seed: two materials scored with one seed share their pixels' jitter and light samples (common random numbers)."""
+               config: TTOConfig, seed: int) -> float:
+    """Clean PSNR (dB, display values) of the material `params` against `photos`, rendered at every
+    config.validation_stride-th foreground pixel (config.validation_spp path samples each, the photos' given
+    exposures): -10 log10 of the mean product of the errors of the two halves of each pixel's samples
+    (`photometric_loss` "decorrelated"), so our render's Monte Carlo noise, which at these sample counts is larger
+    than the difference between two materials, drops out. Deterministic in seed: two materials scored with one seed
+    share their pixels' jitter and light samples (common random numbers)."""
     device = photos.device
     scene = Scene(mesh, envmap, params.field(), device=device)
+    spp = config.validation_spp
     tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1), spp=spp))
     g = torch.Generator(device=device).manual_seed(seed)
+    pixels = torch.arange(0, photos.size, config.validation_stride, device=device)
     chunk = max(1, VALIDATION_RAYS // spp)
     total = 0.0
     with torch.no_grad():
-        for lo in range(0, photos.size, chunk):
-            idx = torch.arange(lo, min(lo + chunk, photos.size), device=device)
+        for idx in pixels.split(chunk):
             rays = photos.rays(idx, spp, g)
             radiance = tracer.render_rays(scene, rays.origins, rays.directions, g)
             product, _ = photometric_loss(radiance, rays.target, spp, tonemap, rays.exposure, "decorrelated")
             total += float(product) * idx.shape[0]
-    return 10 * math.log10(1 / max(total / photos.size, 1e-12))
+    return 10 * math.log10(1 / max(total / pixels.shape[0], 1e-12))
 
 
 def spread_frames(count: int, k: int) -> list[int]:
