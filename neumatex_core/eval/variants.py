@@ -50,6 +50,12 @@ CONSISTENT_01: dict[str, Any] = {**OURS, "init": "pbr", "reg": "start", "lambda_
 CHOOSE_V4: dict[str, Any] = {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                              "alternative_basis": BASIS_V4, "basis_margin_db": 3.0}
 
+# the extraction's default since 2026-11-28 (design note 41; pipeline.NEURAL_FROM_PBR, which a test asserts): both
+# phases' decoders fine-tuned (the material decoder only in the default basis), the TTO after the choice going on
+# from the choice's start
+EXTRACTION_DEFAULT: dict[str, Any] = {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001,
+                                      "select_reuse_start": True, "decoder_in_other_basis": False}
+
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
     "pbr": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr"},
@@ -121,15 +127,12 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_reuse_frozen": {**CHOOSE_V4, "select_reuse_start": True},
     # pbr_start_default_reuse with the material decoder frozen where it runs in basis v4 (the extraction's default
     # since 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.6-2.3 dB relit)
-    "pbr_start_default_alt_frozen": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001,
-                                     "select_reuse_start": True, "decoder_in_other_basis": False},
+    "pbr_start_default_alt_frozen": EXTRACTION_DEFAULT,
     # the same with its choices scored at 16 path samples per pixel instead of 32, or on every other pixel of the
     # held-out photos: either would have saved 10-15 s of the demo's TTO; both were run on a few benchmark objects and
     # Cycles captures and dropped (design note 42: the scores move by up to 1.1 dB, and choices flip)
-    "pbr_start_default_spp16": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001, "select_reuse_start": True,
-                                "decoder_in_other_basis": False, "validation_spp": 16},
-    "pbr_start_default_stride2": {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001,
-                                  "select_reuse_start": True, "decoder_in_other_basis": False, "validation_stride": 2},
+    "pbr_start_default_spp16": {**EXTRACTION_DEFAULT, "validation_spp": 16},
+    "pbr_start_default_stride2": {**EXTRACTION_DEFAULT, "validation_stride": 2},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,
