@@ -232,6 +232,19 @@ def test_pbr_fit_recovers_pbr_materials():
     assert torch.allclose(params[:, 3], truth[:, 3], atol=0.05) and torch.equal(params[:, 4].round(), truth[:, 4])
 
 
+def test_pbr_fit_grid_search_is_the_same_in_any_chunk(basis):
+    """The grid search runs in chunks of materials (small ones keep its [chunk, 3, G, K] tensors in cache: 5x faster
+    than 1024); each material's fit is its own, so the chunk changes no bit of the result."""
+    from neumatex_core.assets.pbr_fit import _grid_search, fit_directions, neural_albedo, neural_targets
+
+    g = torch.Generator().manual_seed(8)
+    values = torch.cat([torch.rand(300, 3, generator=g), torch.rand(300, 6, generator=g) * 2 - 1], dim=-1)
+    target, albedo = neural_targets(basis, values), neural_albedo(basis, values)
+    wi, wo = fit_directions()
+    fits = [_grid_search(target, wi, wo, albedo, chunk=c) for c in (300, 128, 7)]
+    assert all(torch.equal(fits[0], f) for f in fits[1:])
+
+
 def test_uv_texture_asset_round_trip(asset, envmap, tmp_path, basis):
     uv_asset = asset_from_textures("uv-object", asset.mesh, asset.material_texture, basis)
     assert uv_asset.field_kind == "uv_textures"

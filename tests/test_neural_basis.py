@@ -189,6 +189,31 @@ def test_gradients_reach_latent_and_base_color_only(basis) -> None:  # type: ign
     assert not wi_s.requires_grad
 
 
+def test_pdf_and_sample_share_one_sampler_run_per_direction(basis) -> None:  # type: ignore[no-untyped-def]
+    """The path tracer asks `pdf` (next-event estimation) and `sample` with the same wo each bounce: the sampler
+    network runs once for both, and what they return is what a fresh material gives."""
+    m = family_materials(basis, 2, seed=6)
+    k = m.latent.shape[0]
+    g = torch.Generator().manual_seed(7)
+    wo = torch.nn.functional.normalize(torch.randn(k, 3, generator=g), dim=-1).abs()
+    wi = torch.nn.functional.normalize(torch.randn(k, 3, generator=g), dim=-1).abs()
+    u_lobe, u_dir = torch.rand(k, generator=g), torch.rand(k, 2, generator=g)
+    runs: list[int] = []
+    hook = basis.sampler.register_forward_hook(lambda *_: runs.append(1))
+    try:
+        pdf = m.pdf(wi, wo)
+        wi_s, pdf_s = m.sample(wo, u_lobe, u_dir)
+        assert len(runs) == 1
+        m.pdf(wi, wo.clone())  # another direction tensor: evaluated again
+        assert len(runs) == 2
+    finally:
+        hook.remove()
+    fresh = NeuralMaterial(basis, m.base_color, m.latent)
+    assert torch.equal(pdf, fresh.pdf(wi, wo))
+    fresh_wi, fresh_pdf = NeuralMaterial(basis, m.base_color, m.latent).sample(wo, u_lobe, u_dir)
+    assert torch.equal(wi_s, fresh_wi) and torch.equal(pdf_s, fresh_pdf)
+
+
 def test_shipped_basis_accuracy_matches_its_record(basis) -> None:  # type: ignore[no-untyped-def]
     """Recomputed on fresh held-out draws, the decoder and aux errors agree with the record (which bench/basis.py
     reports) and bounded: half of all BSDF values within 15% where visible; R within 0.03 and T within 0.075 on

@@ -176,7 +176,7 @@ def _affine_grid(wi: torch.Tensor, wo: torch.Tensor) -> tuple[torch.Tensor, torc
 
 
 def _grid_search(target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: torch.Tensor | None = None,
-                 chunk: int = 1024) -> torch.Tensor:
+                 chunk: int = 128) -> torch.Tensor:
     """Start parameters [M, 5] for targets y_neural [M, K, 3] (and albedos [M, V, 3]); step 2 of the module
     docstring."""
     a, b, grid = (x.to(target.device) for x in _affine_grid(wi, wo))

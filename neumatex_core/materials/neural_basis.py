@@ -227,6 +227,8 @@ class NeuralMaterial(Material):
         self.latent = latent
         self._aux_key: torch.Tensor | None = None
         self._aux: tuple[torch.Tensor, torch.Tensor] = (latent, latent)
+        self._mixture_key: torch.Tensor | None = None
+        self._mixture: tuple[torch.Tensor, torch.Tensor] = (latent, latent)
 
     def _transmission_reflectance(self, wo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         # The path tracer asks several times per bounce with the same wo tensor: evaluate the aux network once.
@@ -250,6 +252,13 @@ class NeuralMaterial(Material):
 
     def mixture(self, wo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Detached (probabilities [N, 3] over {cosine, GGX 1, GGX 2}, widths [N, 2]) of `sample`."""
+        # `pdf` (next-event estimation) and `sample` ask with the same wo tensor each bounce: run the sampler once
+        if self._mixture_key is not wo:
+            self._mixture = self._lobe_mixture(wo)
+            self._mixture_key = wo
+        return self._mixture
+
+    def _lobe_mixture(self, wo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         with torch.no_grad():
             t, r = self._transmission_reflectance(wo)
             diffuse = luminance(t.detach() * self.base_color.detach())
