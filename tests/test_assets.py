@@ -95,6 +95,24 @@ def test_round_trip_renders_bit_for_bit(asset, envmap, tmp_path, kind):
         assert all(float(x.max()) > 0 for x in before)
 
 
+def test_the_same_asset_gives_the_same_texture_bytes(written, asset, tmp_path):
+    """No time stamp in the EXR textures (OpenImageIO adds one unless told not to): the same material gives the same
+    bytes, and so the same SHA-256 in the manifest, whenever it is written."""
+    import OpenImageIO as oiio
+
+    again = write_asset(asset, tmp_path / "again")
+    textures = sorted(p.relative_to(written) for p in (written / "textures").iterdir())
+    assert any(p.suffix == ".exr" for p in textures)
+    for rel in textures:
+        assert (written / rel).read_bytes() == (again / rel).read_bytes(), rel
+        if rel.suffix == ".exr":
+            inp = oiio.ImageInput.open(str(written / rel))
+            assert inp.spec().get_string_attribute("DateTime") == "", rel
+            inp.close()
+    files = {k: v["sha256"] for k, v in json.loads((written / "manifest.json").read_text())["files"].items()}
+    assert files == {k: v["sha256"] for k, v in json.loads((again / "manifest.json").read_text())["files"].items()}
+
+
 def test_manifest_records_what_the_issue_asks(written, asset, basis):
     m = json.loads((written / "manifest.json").read_text())
     assert m["format_version"] == FORMAT_VERSION and m["format"] == "neumatex-material-asset"

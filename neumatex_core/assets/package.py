@@ -84,22 +84,15 @@ def neumatex_version() -> str:
 
 # -- texture files -------------------------------------------------------------------------------------------
 def write_exr(path: Path, pixels: np.ndarray, channels: tuple[str, ...] | None = None) -> None:
-    """float32 [H, W, C] EXR (zip compression: lossless), with channel names if given."""
-    import OpenImageIO as oiio
+    """float32 [H, W, C] EXR (zip compression: lossless), with channel names if given. Written by
+    `imageio.write_image`, which leaves out EXR's time stamp: the same texture gives the same bytes, so an asset's
+    manifest (its files' SHA-256) is the same for the same material."""
+    from neumatex_core.imageio import ImageError, write_image
 
-    data = np.ascontiguousarray(pixels, dtype=np.float32)
-    h, w, c = data.shape
-    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
-    if channels is not None:
-        spec.channelnames = channels
-    spec.attribute("compression", "zip")
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec) or not out.write_image(data):
-        msg = oiio.geterror() if out is None else out.geterror()
-        if out is not None:
-            out.close()
-        raise AssetError(f"{path}: cannot write EXR ({msg})")
-    out.close()
+    try:
+        write_image(path, np.asarray(pixels, dtype=np.float32), channels)
+    except ImageError as exc:
+        raise AssetError(str(exc)) from None
 
 
 def read_exr(path: Path, label: str, channels: int, resolution: int) -> np.ndarray:
