@@ -82,9 +82,10 @@ def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor
 
 @contextmanager
 def frozen(module: torch.nn.Module | None) -> Iterator[None]:
-    """Within the block, no gradient for the weights of `module` (None: nothing to do) that Adam does not step
-    anyway: a trainable decoder (TTOConfig.train_decoder) under a fit of the planes alone had its weights' gradients
-    computed and thrown away, a quarter of `fit_planes`'s time; the planes' gradients are bit for bit the same."""
+    """Within the block the trainable weights of `module` (None: nothing to do) get no gradient; after it they are
+    trainable again. For fits that step the planes alone under a decoder the TTO fine-tunes (TTOConfig.train_decoder):
+    its weights' gradients would be computed for nothing, a quarter of `fit_planes`'s time; the planes' gradients
+    are the same bit for bit (docs/design-notes.md item 43)."""
     trainable = [] if module is None else [w for w in module.parameters() if w.requires_grad]
     for w in trainable:
         w.requires_grad_(False)
