@@ -1,8 +1,15 @@
-"""Device choice, written once: CUDA when present, else CPU. All core code is device-agnostic."""
+"""Device choice, written once: CUDA when present, else CPU. All core code is device-agnostic. And how independent
+pieces of work share the CPU's torch threads (`side_by_side`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
 import torch
+
+T = TypeVar("T")
 
 
 def default_device() -> torch.device:
@@ -14,3 +21,23 @@ def resolve_device(name: str = "auto") -> torch.device:
     """The torch device a config names: "auto" is `default_device()`, anything else ("cpu", "cuda", "cuda:1") as
     given."""
     return default_device() if name == "auto" else torch.device(name)
+
+
+def side_by_side(tasks: Sequence[Callable[[], T]], device: torch.device) -> list[T]:
+    """The tasks' results (in order). On the CPU with at least one torch thread per task they run side by side, each in
+    its own Python thread on an equal share of torch's threads (torch releases the GIL inside its operations), and
+    torch's thread count is restored afterwards; else (one thread, or a GPU) one after the other. A neural TTO
+    phase's small operations leave a second torch thread idle much of the time, so two of them on 2 cores take 1.77x
+    one on both instead of 2x (the demo's choice: 56 -> 50 s; docs/design-notes.md item 44). The tasks must share
+    nothing they write. A task's numbers depend on the threads it runs on, as any torch computation's: the same
+    settings on one machine give the same bits."""
+    threads = torch.get_num_threads()
+    if len(tasks) < 2 or device.type != "cpu" or threads < len(tasks):
+        return [task() for task in tasks]
+    torch.set_num_threads(threads // len(tasks))
+    try:
+        with ThreadPoolExecutor(len(tasks), thread_name_prefix="side-by-side") as pool:
+            futures = [pool.submit(task) for task in tasks]
+            return [future.result() for future in futures]
+    finally:
+        torch.set_num_threads(threads)

@@ -17,6 +17,7 @@ import torch
 
 from neumatex_core.materials.basis_training import TrainBasisConfig, heldout_metrics, train_basis
 from neumatex_core.materials.neural_basis import (
+    BLOCK_ROWS,
     DEFAULT_RECORD,
     DEFAULT_WEIGHTS,
     BasisArchitecture,
@@ -212,6 +213,27 @@ def test_pdf_and_sample_share_one_sampler_run_per_direction(basis) -> None:  # t
     assert torch.equal(pdf, fresh.pdf(wi, wo))
     fresh_wi, fresh_pdf = NeuralMaterial(basis, m.base_color, m.latent).sample(wo, u_lobe, u_dir)
     assert torch.equal(wi_s, fresh_wi) and torch.equal(pdf_s, fresh_pdf)
+
+
+def test_an_mlp_without_autograd_runs_in_equal_blocks_with_the_same_bits(basis) -> None:  # type: ignore[no-untyped-def]
+    """Without autograd a large batch goes through the decoder in equal blocks of at most BLOCK_ROWS rows (the
+    activations stay in the cache), each more than half a block (a product of a few rows takes another kernel), and
+    every row's output is what the whole batch under autograd gives, bit for bit."""
+    net = basis.decoder
+    n = 2 * BLOCK_ROWS + 1  # blocks of 10,923 / 10,923 / 10,923 rows, not 16,384 / 16,384 / 1
+    x = torch.rand(n, net[0].in_features, generator=torch.Generator().manual_seed(8)) * 2 - 1
+    rows: list[int] = []
+    hook = net[0].register_forward_hook(lambda _m, inputs, _out: rows.append(int(inputs[0].shape[0])))
+    try:
+        with torch.no_grad():
+            blocked = net(x)
+        assert len(rows) == 3 and sum(rows) == n and all(BLOCK_ROWS // 2 < r <= BLOCK_ROWS for r in rows)
+        rows.clear()
+        whole = net(x)  # autograd on: one pass, so the weights' gradients are summed as before
+        assert rows == [n]
+    finally:
+        hook.remove()
+    assert torch.equal(blocked, whole.detach())
 
 
 def test_shipped_basis_accuracy_matches_its_record(basis) -> None:  # type: ignore[no-untyped-def]

@@ -547,6 +547,51 @@ def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, trut
     assert exposed.exposure is not None and len(exposed.exposure) == example.photos.count
 
 
+def test_the_choice_runs_its_candidates_side_by_side_with_the_same_result(example, truth_prediction):
+    """With two torch threads the choice's two candidates (each neural phase and its held-out score) run side by side in
+    two Python threads of one torch thread each (`side_by_side`; the demo's choice 56 -> 50 s, docs/design-notes.md item
+    44), and give what one torch thread gives one after the other, bit for bit: scores, choice and result. The progress
+    still counts every step once, in order, and torch's thread count is given back; with one thread they run one after
+    the other in the caller's thread."""
+    import threading
+
+    from neumatex_core.device import side_by_side
+    from neumatex_core.tto import solve
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=0.5,
+                           select_reuse_start=True, pbr_fit_steps=50)  # fmt: skip
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2),
+            example.basis)  # fmt: skip
+
+    def run() -> tuple[object, list[int], set[str]]:
+        steps: list[int] = []
+        threads: set[str] = set()
+
+        def progress(s: int, _n: int, row: dict[str, float]) -> None:
+            steps.append(s)
+            if row["phase"] == 1.0:
+                threads.add(threading.current_thread().name)
+        return solve(cfg, *args, progress=progress), steps, threads
+
+    assert torch.get_num_threads() == 1  # this module's (one_thread)
+    alone, alone_steps, alone_threads = run()
+    assert alone_threads == {threading.current_thread().name}
+    torch.set_num_threads(2)
+    try:
+        paired, paired_steps, paired_threads = run()
+        assert torch.get_num_threads() == 2
+        with pytest.raises(ZeroDivisionError):  # a task's error reaches the caller, and the threads are given back
+            side_by_side([lambda: 1, lambda: 1 // 0], torch.device("cpu"))
+        assert side_by_side([lambda: 1, lambda: 2], torch.device("cpu")) == [1, 2] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    assert len(paired_threads) == 2 and threading.current_thread().name not in paired_threads
+    assert alone_steps == paired_steps == list(range(1, cfg.run_steps() + 1))
+    assert paired.selection == alone.selection and paired.finished
+    assert torch.equal(paired.params.tensor, alone.params.tensor)
+
+
 def test_bsdf_refinement_recovers_what_the_encoder_conversion_loses(example, truth_prediction):
     """The encoder conversion (pbr_to_neural) of a rough grey metal keeps ~60% of its albedo in the shipped basis;
     the BSDF-space refinement of the start (refine_to_pbr_bsdf) brings the neural material's hemispherical albedo

@@ -17,18 +17,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from neumatex_core.materials.neural_basis import LATENT_DIM
+from neumatex_core.materials.neural_basis import LATENT_DIM, mlp
 
 N_MATERIAL = 3 + LATENT_DIM  # rho_d + latent: the material G-buffer's channels
-
-
-def _mlp(n_in: int, hidden: int, layers: int, n_out: int) -> nn.Sequential:
-    mods: list[nn.Module] = []
-    for _ in range(layers):
-        mods += [nn.Linear(n_in, hidden), nn.SiLU()]
-        n_in = hidden
-    mods.append(nn.Linear(n_in, n_out))
-    return nn.Sequential(*mods)
 
 
 class _Decoder(nn.Module):
@@ -38,7 +29,7 @@ class _Decoder(nn.Module):
     def __init__(self, in_features: int, hidden: int = 64, layers: int = 2) -> None:
         super().__init__()
         self.in_features, self.hidden, self.layers = in_features, hidden, layers
-        self.net = _mlp(in_features, hidden, layers, self.n_out)
+        self.net = mlp(in_features, [hidden] * layers, self.n_out)
 
     def architecture(self) -> dict[str, Any]:
         """Constructor arguments (JSON-able): `type(self)(**architecture())` has the same shapes."""

@@ -16,6 +16,7 @@ photos pull it towards the lobes PBR lacks.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -26,6 +27,7 @@ import numpy as np
 import torch
 
 from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.device import side_by_side
 from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
@@ -185,6 +187,41 @@ def _checkpoint(checkpoint_dir: Path | None, name: str) -> Path | None:
 def _offset(progress: Progress | None, offset: int, total: int, phase: float) -> Progress | None:
     """A phase's progress reported as steps of the whole TTO (`total`), its rows tagged with `phase`."""
     return None if progress is None else (lambda s, _n, row: progress(offset + s, total, {**row, "phase": phase}))
+
+
+class _JointReports:
+    """The progress and should_stop callbacks of phases that may run side by side (`side_by_side`): each phase's
+    steps count towards the whole TTO's (`total`) after `offset`, so the bar moves on as either advances, and the
+    caller's callbacks are never entered by two threads at once. Rows are tagged phase 1 (the choice's)."""
+
+    def __init__(self, progress: Progress | None, should_stop: Callable[[], bool] | None, offset: int, total: int,
+                 count: int) -> None:
+        self._progress, self._should_stop, self.offset, self.total = progress, should_stop, offset, total
+        self._done = [0] * count
+        self._lock = threading.Lock()
+
+    def progress(self, k: int) -> Progress | None:
+        """Phase k's progress callback (None without the caller's)."""
+        report = self._progress
+        if report is None:
+            return None
+
+        def step(s: int, _n: int, row: dict[str, float]) -> None:
+            with self._lock:
+                self._done[k] = s
+                report(self.offset + sum(self._done), self.total, {**row, "phase": 1.0})
+        return step
+
+    def should_stop(self) -> Callable[[], bool] | None:
+        """The caller's should_stop, one thread at a time (None without one)."""
+        ask = self._should_stop
+        if ask is None:
+            return None
+
+        def stop() -> bool:
+            with self._lock:
+                return ask()
+        return stop
 
 
 def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
@@ -452,18 +489,27 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         # the basis is chosen once, here, for both candidates and the TTO that follows
         start = neural_start(config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction, basis,
                              anchor_available)  # fmt: skip
-        scores = []
         steps = config.select_steps()
-        for k, candidate in enumerate(candidates):
-            phase_progress = _offset(progress, config.pbr_steps + k * steps, total, 1.0)
-            result = _neural_phase(replace(candidate, steps=steps), first, mesh, envmap, fit_photos, tonemap,
-                                   prediction, start.basis, anchor_available, truth,
-                                   phase_progress, should_stop, checkpoint(f"select_{choice.names[k]}.pt"),
-                                   start)  # fmt: skip
+        reports = _JointReports(progress, should_stop, config.pbr_steps, total, len(candidates))
+        pbr_solution, chosen_start = first, start
+
+        def candidate_score(k: int) -> tuple[TTOResult, float]:
+            """Candidate k's neural phase on the fitted photos and its score on the held-out ones (nan: stopped)."""
+            result = _neural_phase(replace(candidates[k], steps=steps), pbr_solution, mesh, envmap, fit_photos, tonemap,
+                                   prediction, chosen_start.basis, anchor_available, truth, reports.progress(k),
+                                   reports.should_stop(), checkpoint(f"select_{choice.names[k]}.pt"),
+                                   chosen_start)  # fmt: skip
+            if not result.finished:
+                return result, math.nan
+            return result, photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
+                                      config.seed + 1)  # fmt: skip
+
+        # the candidates share no state they write (each has its own problem, planes, decoder copy, checkpoint)
+        runs = side_by_side([partial(candidate_score, k) for k in range(len(candidates))], first.params.tensor.device)
+        for result, _ in runs:
             if not result.finished:
                 return result
-            scores.append(photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
-                                     config.seed + 1))  # fmt: skip
+        scores = [score for _, score in runs]
         keep = scores[1] <= scores[0] + config.select_margin_db
         chosen = 0 if keep else 1
         selection = {f"validation_psnr_{choice.names[0]}": scores[0],
