@@ -547,12 +547,12 @@ def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, trut
     assert exposed.exposure is not None and len(exposed.exposure) == example.photos.count
 
 
-def test_the_choice_runs_its_candidates_side_by_side_with_the_same_result(example, truth_prediction):
+def test_the_choice_runs_its_candidates_side_by_side_with_the_same_result(example, truth_prediction, tmp_path):
     """With two torch threads the choice's two candidates (each neural phase and its held-out score) run side by side in
     two Python threads of one torch thread each (`side_by_side`; the demo's choice 56 -> 50 s, docs/design-notes.md item
-    44), and give what one torch thread gives one after the other, bit for bit: scores, choice and result. The progress
-    still counts every step once, in order, and torch's thread count is given back; with one thread they run one after
-    the other in the caller's thread."""
+    44), and give what one torch thread gives one after the other, bit for bit: scores, choice and result, also when
+    stopped during the choice and resumed. The progress still counts every step once, in order, and torch's thread
+    count is given back; with one thread they run one after the other in the caller's thread."""
     import threading
 
     from neumatex_core.device import side_by_side
@@ -581,6 +581,14 @@ def test_the_choice_runs_its_candidates_side_by_side_with_the_same_result(exampl
     try:
         paired, paired_steps, paired_threads = run()
         assert torch.get_num_threads() == 2
+        # stopped during the choice (both candidates stop and keep their checkpoints), then resumed: the same result
+        seen: list[int] = []
+        stopped = solve(cfg, *args, checkpoint_dir=tmp_path, progress=lambda s, n, row: seen.append(s),
+                        should_stop=lambda: bool(seen) and seen[-1] >= cfg.pbr_steps + 1)  # fmt: skip
+        assert not stopped.finished and {"select_uniform.pt", "select_textured.pt"} <= {
+            p.name for p in tmp_path.iterdir()}
+        resumed = solve(cfg, *args, checkpoint_dir=tmp_path)
+        assert resumed.finished and torch.equal(resumed.params.tensor, paired.params.tensor)
         with pytest.raises(ZeroDivisionError):  # a task's error reaches the caller, and the threads are given back
             side_by_side([lambda: 1, lambda: 1 // 0], torch.device("cpu"))
         assert side_by_side([lambda: 1, lambda: 2], torch.device("cpu")) == [1, 2] and torch.get_num_threads() == 2

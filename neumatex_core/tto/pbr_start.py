@@ -200,7 +200,7 @@ class _JointReports:
         self._done = [0] * count
         self._lock = threading.Lock()
 
-    def progress(self, k: int) -> Progress | None:
+    def progress_of(self, k: int) -> Progress | None:
         """Phase k's progress callback (None without the caller's)."""
         report = self._progress
         if report is None:
@@ -212,7 +212,7 @@ class _JointReports:
                 report(self.offset + sum(self._done), self.total, {**row, "phase": 1.0})
         return step
 
-    def should_stop(self) -> Callable[[], bool] | None:
+    def stop_check(self) -> Callable[[], bool] | None:
         """The caller's should_stop, one thread at a time (None without one)."""
         ask = self._should_stop
         if ask is None:
@@ -496,8 +496,8 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         def candidate_score(k: int) -> tuple[TTOResult, float]:
             """Candidate k's neural phase on the fitted photos and its score on the held-out ones (nan: stopped)."""
             result = _neural_phase(replace(candidates[k], steps=steps), pbr_solution, mesh, envmap, fit_photos, tonemap,
-                                   prediction, chosen_start.basis, anchor_available, truth, reports.progress(k),
-                                   reports.should_stop(), checkpoint(f"select_{choice.names[k]}.pt"),
+                                   prediction, chosen_start.basis, anchor_available, truth, reports.progress_of(k),
+                                   reports.stop_check(), checkpoint(f"select_{choice.names[k]}.pt"),
                                    chosen_start)  # fmt: skip
             if not result.finished:
                 return result, math.nan
