@@ -491,7 +491,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                              anchor_available)  # fmt: skip
         steps = config.select_steps()
         reports = _JointReports(progress, should_stop, config.pbr_steps, total, len(candidates))
-        pbr_solution, chosen_start = first, start
+        pbr_solution, chosen_start = first, start  # as set here (the closure below does not see them narrowed)
 
         def candidate_score(k: int) -> tuple[TTOResult, float]:
             """Candidate k's neural phase on the fitted photos and its score on the held-out ones (nan: stopped)."""
