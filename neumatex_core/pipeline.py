@@ -504,8 +504,9 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
         raise Cancelled(f"stopped at TTO step {result.steps_done}/{tto.steps}; the checkpoint {out / 'checkpoint.pt'} "
                         "resumes it")  # fmt: skip
     tensors = {"tensor": result.params.tensor.detach().cpu().contiguous()}
-    if result.params.decoder_parameters():  # train_decoder: the fine-tuned material decoder goes with the planes
-        for k, v in result.params.decoder.state_dict().items():  # type: ignore[union-attr]
+    tuned = result.params.trained_decoder()
+    if tuned is not None:  # train_decoder: the fine-tuned material decoder goes with the planes
+        for k, v in tuned.state_dict().items():
             tensors[f"decoder.{k}"] = v.detach().cpu().float().contiguous()
     save_file(tensors, str(out / "result.safetensors"))
     write_json_atomic(out / "history.json", result.history)

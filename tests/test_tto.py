@@ -581,7 +581,10 @@ def test_the_choice_runs_its_candidates_side_by_side_with_the_same_result(exampl
     try:
         paired, paired_steps, paired_threads = run()
         assert torch.get_num_threads() == 2
-        # stopped during the choice (both candidates stop and keep their checkpoints), then resumed: the same result
+        # stopped during the choice (both candidates stop and keep their checkpoints), then resumed: the same result,
+        # and the shared frozen decoders are only read (a thread writing one broke the other's backward pass)
+        shared = [p for d in (args[4].material_decoder, args[4].pbr_decoder) for p in d.parameters()]
+        versions = [p._version for p in shared]
         seen: list[int] = []
         stopped = solve(cfg, *args, checkpoint_dir=tmp_path, progress=lambda s, n, row: seen.append(s),
                         should_stop=lambda: bool(seen) and seen[-1] >= cfg.pbr_steps + 1)  # fmt: skip
@@ -589,6 +592,7 @@ def test_the_choice_runs_its_candidates_side_by_side_with_the_same_result(exampl
             p.name for p in tmp_path.iterdir()}
         resumed = solve(cfg, *args, checkpoint_dir=tmp_path)
         assert resumed.finished and torch.equal(resumed.params.tensor, paired.params.tensor)
+        assert [p._version for p in shared] == versions
         with pytest.raises(ZeroDivisionError):  # a task's error reaches the caller, and the threads are given back
             side_by_side([lambda: 1, lambda: 1 // 0], torch.device("cpu"))
         assert side_by_side([lambda: 1, lambda: 2], torch.device("cpu")) == [1, 2] and torch.get_num_threads() == 2

@@ -270,10 +270,11 @@ def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametri
                      opt: torch.optim.Optimizer, history: list[dict[str, float]],
                      cache_tensor: torch.Tensor | None, exposure: ExposureFit | None = None,
                      average: torch.Tensor | None = None) -> None:
+    trained = params.trained_decoder()  # a frozen decoder is not the run's own: nothing to keep
     with replaced_atomically(path) as tmp:
         torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
                     "tensor": params.tensor.detach().cpu(), "optimizer": opt.state_dict(), "history": history,
-                    "decoder": None if params.decoder is None else params.decoder.state_dict(),
+                    "decoder": None if trained is None else trained.state_dict(),
                     "cache_tensor": None if cache_tensor is None else cache_tensor.cpu(),
                     "exposure": None if exposure is None else exposure.log_scale.detach().cpu(),
                     "average": None if average is None else average.cpu()}, tmp)  # fmt: skip
@@ -290,8 +291,10 @@ def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation, opt
         raise ValueError(f"{path}: TTO checkpoint of another configuration; delete it to start the TTO over")
     with torch.no_grad():
         params.tensor.copy_(state["tensor"])
-    if params.decoder is not None and state.get("decoder") is not None:
-        params.decoder.load_state_dict(state["decoder"])
+    # a frozen decoder is shared: writing it, even with its own values, broke another thread's backward pass
+    trained = params.trained_decoder()
+    if trained is not None and state.get("decoder") is not None:
+        trained.load_state_dict(state["decoder"])
     if exposure is not None and state.get("exposure") is not None:
         with torch.no_grad():
             exposure.log_scale.copy_(state["exposure"])

@@ -62,6 +62,11 @@ class Parametrisation(ABC):
             return []
         return [p for p in self.decoder.parameters() if p.requires_grad]
 
+    def trained_decoder(self) -> torch.nn.Module | None:
+        """The decoder TTO fine-tunes: this parametrisation's own copy. None where it is frozen (then it is shared,
+        e.g. the LMRM's, read by phases that may run side by side, so it is only read) or there is none."""
+        return self.decoder if self.decoder_parameters() else None
+
     @abstractmethod
     def gbuffer(self, points: torch.Tensor, uv: torch.Tensor | None) -> torch.Tensor: ...
 
