@@ -72,12 +72,13 @@ def one(object_dir: str, work: str, variant: str) -> dict[str, Any]:
             **({"choice": choice} if choice else {})}  # fmt: skip
 
 
-def stored_rows() -> dict[str, dict[str, dict[str, float]]]:
+def stored_rows(since: str = "") -> dict[str, dict[str, dict[str, float]]]:
     """variant -> object -> scores: this benchmark's rows, then random_pose_e2e's preset rows where this one has
-    none (the latest line wins within each file)."""
+    none (the latest line wins within each file); with `since` (an ISO time), only this benchmark's rows written at
+    or after it."""
     rows: dict[str, dict[str, dict[str, float]]] = {}
     e2e = RESULTS / "random_pose_e2e.jsonl"
-    if e2e.is_file():
+    if e2e.is_file() and not since:
         for line in e2e.read_text().splitlines():
             for row in json.loads(line).get("rows", []):
                 for key, scores in row.items():
@@ -87,7 +88,8 @@ def stored_rows() -> dict[str, dict[str, dict[str, float]]]:
     if own.is_file():
         for line in own.read_text().splitlines():
             row = json.loads(line)
-            rows.setdefault(row["variant"], {})[row["object"]] = row["scores"]
+            if row["timestamp"] >= since:
+                rows.setdefault(row["variant"], {})[row["object"]] = row["scores"]
     return rows
 
 
@@ -162,8 +164,8 @@ def family_table(res: Results, variant: str, base: str, families: dict[str, list
 
 
 def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None,
-              by_family: tuple[Path, str] | None = None) -> int:
-    stored = stored_rows()
+              by_family: tuple[Path, str] | None = None, since: str = "") -> int:
+    stored = stored_rows(since)
     for variant in variants if fill_from else []:
         scores = basis_scores(variant)
         mine = stored.setdefault(variant, {})
@@ -206,6 +208,9 @@ def main() -> int:
     parser.add_argument("--against", default="pbr_start_anchor_01,pbr")
     parser.add_argument("--work", default="runs/bench-variants-clean")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--since", default="", metavar="ISO_TIME", help="count only rows written since then as done "
+                        "(a baseline measured again on this machine, docs/design-notes.md item 44); with --summarise, "
+                        "only those rows are summarised")
     parser.add_argument("--summarise", action="store_true", help="print the paired table so far and stop")
     parser.add_argument("--fill-from", default="", help="with --summarise: comma-separated variants whose rows stand "
                         "in where they choose the same basis (see above)")
@@ -215,9 +220,9 @@ def main() -> int:
     variants, against = args.variants.split(","), args.against.split(",")
     if args.summarise:
         return summarise(variants, against, [v for v in args.fill_from.split(",") if v],
-                         (Path(args.data), args.by_family) if args.by_family else None)
+                         (Path(args.data), args.by_family) if args.by_family else None, args.since)
     data = Path(args.data)
-    done = stored_rows()
+    done = stored_rows(args.since)
     jobs = [(str(data / o), str(Path(args.work) / o), v) for v in variants for o in select_objects(data, args.objects)
             if o not in done.get(v, {})]  # fmt: skip
     print(f"{len(jobs)} (object, variant) pairs to run", flush=True)
@@ -227,7 +232,7 @@ def main() -> int:
             write_result("variants_clean", row)
             print(f"{row['object']} {row['variant']}: " + ", ".join(f"{NAMES[m]} {row['scores'][m]:.2f}"
                   for m in METRICS if m in row["scores"]), flush=True)  # fmt: skip
-    return summarise(variants, against)
+    return summarise(variants, against, since=args.since)
 
 
 if __name__ == "__main__":

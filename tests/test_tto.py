@@ -547,6 +547,66 @@ def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, trut
     assert exposed.exposure is not None and len(exposed.exposure) == example.photos.count
 
 
+def test_select_continue_goes_on_from_the_chosen_candidate(example, truth_prediction, tmp_path, monkeypatch):
+    """select_continue: the TTO after the choice starts from the chosen candidate's planes and decoder (not from the
+    choice's start again) and runs only the neural steps that candidate did not, still anchored to the start; the
+    progress counts those steps, their schedule starts at select_continue_lr x lr, the history holds the candidate's
+    rows before them, and stopped in the last phase and resumed, the result is bit for bit the same."""
+    from neumatex_core.tto import pbr_start, solve
+    from neumatex_core.tto.params import NeuralTriplane
+
+    entries: list[dict[str, torch.Tensor]] = []
+    exits: list[dict[str, torch.Tensor]] = []
+    run = pbr_start.optimise
+
+    def recorded(problem, config, *a, **k):
+        def state() -> dict[str, torch.Tensor]:
+            found = {"planes": problem.params.tensor.detach().clone()}
+            if isinstance(problem.params, NeuralTriplane):
+                found.update({k: v.detach().clone() for k, v in problem.params.decoder.state_dict().items()})
+                found["anchor"] = problem.anchor.target.clone()
+            return found
+        entries.append(state())
+        result = run(problem, config, *a, **k)
+        exits.append(state())
+        return result
+
+    monkeypatch.setattr(pbr_start, "optimise", recorded)
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=0.5,
+                           select_reuse_start=True, select_continue=True, select_continue_lr=0.5, pbr_fit_steps=50,
+                           train_decoder=True, decoder_lr=0.01)  # fmt: skip
+    assert cfg.select_steps() == 2 and cfg.continue_steps() == 2 and cfg.run_steps() == 4 + 2 * 2 + 2
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2),
+            example.basis)  # fmt: skip
+    steps: list[int] = []
+    went_on = solve(cfg, *args, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
+    assert steps == list(range(1, cfg.run_steps() + 1)) and went_on.finished
+    assert len(entries) == 4  # the PBR phase, the two candidates, the remaining steps
+    chosen = 1 + int(went_on.selection["uniform_kept"] == 0.0)
+    assert set(entries[3]) == set(exits[chosen]) and len(entries[3]) > 2  # planes, decoder weights, anchor
+    for key, value in entries[3].items():
+        assert torch.equal(value, exits[chosen][key]), key  # where the chosen candidate ended; the anchor its start's
+    assert not torch.equal(entries[3]["planes"], entries[chosen]["planes"])
+    assert [r["phase"] for r in went_on.history] == [0.0] * 4 + [1.0] * 4
+    assert went_on.history[6]["lr"] == 0.5 * went_on.history[4]["lr"]  # the remaining steps' schedule from lr / 2
+    # the same choice made without select_continue runs all four steps again from the start
+    entries.clear(), exits.clear()
+    again = solve(replace(cfg, select_continue=False), *args)
+    assert again.selection == went_on.selection and torch.equal(entries[3]["planes"], entries[1]["planes"])
+    assert not torch.equal(again.params.tensor, went_on.params.tensor)
+    # stopped one step before the end, then resumed from the checkpoints: the same result
+    (tmp_path / "b").mkdir()
+    seen: list[int] = []
+    stopped = solve(cfg, *args, checkpoint_dir=tmp_path / "b", progress=lambda s, n, row: seen.append(s),
+                    should_stop=lambda: bool(seen) and seen[-1] >= cfg.run_steps() - 1)  # fmt: skip
+    assert not stopped.finished and seen[-1] == cfg.run_steps() - 1
+    resumed = solve(cfg, *args, checkpoint_dir=tmp_path / "b")
+    assert resumed.finished and torch.equal(resumed.params.tensor, went_on.params.tensor)
+    exposed = solve(replace(cfg, photo_exposure=True), *args)  # the candidate's exposures, the held-out photos' at 1
+    assert exposed.exposure is not None and len(exposed.exposure) == example.photos.count
+
+
 def test_the_choice_runs_its_candidates_side_by_side_with_the_same_result(example, truth_prediction, tmp_path):
     """With two torch threads the choice's two candidates (each neural phase and its held-out score) run side by side in
     two Python threads of one torch thread each (`side_by_side`; the demo's choice 56 -> 50 s, docs/design-notes.md item

@@ -58,6 +58,7 @@ RANGES: dict[str, Range] = {
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
     "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100),
     "select_fraction": Range(0, 1, lo_open=True), "basis_margin_db": Range(-100, 100),
+    "select_continue_lr": Range(0, 100, lo_open=True),
     "validation_spp": Range(2, 4096), "validation_stride": Range(1, 4096)}  # fmt: skip
 
 
@@ -172,6 +173,14 @@ class TTOConfig:
     # TTO 180 s -> 146 s), and the held-out photos still reach the result through the neural phase
     # (docs/design-notes.md item 40). Without a choice it changes nothing.
     select_reuse_start: bool = False
+    # select_reuse_start: the TTO after the choice goes on from the chosen candidate's result (its planes, decoder
+    # and exposures after its select_steps() on all photos but the held-out ones) for the remaining
+    # steps - select_steps() neural steps on every photo (a new cosine schedule from lr), instead of running all
+    # `steps` again from the start: the candidate's steps are not thrown away (docs/design-notes.md item 45).
+    # Without select_reuse_start and a choice it changes nothing. Those steps' schedule starts at
+    # select_continue_lr x lr (0.5: about where a single cosine over all `steps` would be at that point)
+    select_continue: bool = False
+    select_continue_lr: float = 1.0
     # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
     # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
     # start (consistency_of "change"; "value": end alike), so the neural phase may move a material everywhere at once
@@ -252,11 +261,18 @@ class TTOConfig:
     def run_steps(self) -> int:
         """Adam steps the TTO runs (its progress counts these): total_steps, and with select_anchor or
         select_uniform first the choice (the PBR phase and two neural phases of select_steps on all photos but the
-        held-out ones), after which select_reuse_start runs the neural phase alone."""
+        held-out ones), after which select_reuse_start runs the neural phase alone (select_continue: its remaining
+        continue_steps)."""
         if not (self.select_anchor or self.select_uniform):
             return self.total_steps()
         choice = self.pbr_steps + 2 * self.select_steps()
-        return choice + (self.steps if self.select_reuse_start else self.total_steps())
+        if not self.select_reuse_start:
+            return choice + self.total_steps()
+        return choice + (self.continue_steps() if self.select_continue else self.steps)
+
+    def continue_steps(self) -> int:
+        """Neural steps on every photo after the choice with select_continue: those the chosen candidate did not run."""
+        return max(1, self.steps - self.select_steps())
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -239,10 +239,12 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
 def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
                   tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool,
                   truth: Truth | None, progress: Progress | None, should_stop: Callable[[], bool] | None,
-                  checkpoint: Path | None, start: BasisStart) -> TTOResult:
+                  checkpoint: Path | None, start: BasisStart, resume: TTOResult | None = None) -> TTOResult:
     """Phase two: the neural triplane from `start`, the PBR solution `first` fitted in `basis` (`neural_start`),
     then `config.steps` steps of neural TTO (anchored to that start with weight
-    config.lambda_reg when reg is "start"). The history holds both phases."""
+    config.lambda_reg when reg is "start"). The history holds both phases. With `resume` (an earlier neural phase
+    from the same start: the choice's candidate, config.select_continue) the steps go on from its planes and its
+    decoder, still anchored to `start`, and the history holds `resume`'s rows between the two."""
     # reg "start" is this function's anchor (set on the problem below), not one build_problem makes
     other_basis = start.switched or bool(config.basis)
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
@@ -262,8 +264,17 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
         with torch.no_grad():
             target = problem.params.gbuffer(points, None)
         problem.anchor = Anchor(points, None if uv is None else uv.to(points.device), target, torch.ones_like(target))
+    earlier: list[dict[str, float]] = []
+    if resume is not None:  # after the anchor: that stays the start's G-buffer
+        assert isinstance(resume.params, NeuralTriplane)
+        with torch.no_grad():
+            problem.params.tensor.copy_(resume.params.tensor)
+            trained, tuned = problem.params.trained_decoder(), resume.params.trained_decoder()
+            if trained is not None and tuned is not None:
+                trained.load_state_dict(tuned.state_dict())
+        earlier = [row for row in resume.history if row.get("phase") == 1.0]
     second = optimise(problem, neural_config, progress, should_stop, checkpoint)
-    second.history = [*({**row, "phase": 0.0} for row in first.history),
+    second.history = [*({**row, "phase": 0.0} for row in first.history), *earlier,
                       *({**row, "phase": 1.0, "start_mse": start_mse} for row in second.history)]
     return second
 
@@ -464,7 +475,8 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     with that choice on every photo, so the result is exactly what the plain TTO with the chosen config gives (the
     held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB); or, with
     config.select_reuse_start, its neural phase alone on every photo from the start the choice made (the held-out
-    photos then reach the result through the neural phase only; docs/design-notes.md item 40). Its `selection`
+    photos then reach the result through the neural phase only; docs/design-notes.md item 40), and with
+    config.select_continue only its remaining steps, from the chosen candidate (item 45). Its `selection`
     records both scores and the choice. A capture with no photos to hold out gets the choice's fallback candidate
     (`Choice.fallback`; its selection's validation_photos is 0)."""
     checkpoint = partial(_checkpoint, checkpoint_dir)
@@ -479,6 +491,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     chosen, selection = choice.fallback, {choice.kept_key: float(choice.fallback == 0), "validation_photos": 0.0}
     start: BasisStart | None = None
     first: TTOResult | None = None
+    runs: list[tuple[TTOResult, float]] = []  # the candidates' results and scores
     fit = [i for i in range(photos.count) if i not in held_out]
     if held_out:
         fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
@@ -522,14 +535,19 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                                basis=start.basis.basis_id if start.switched else final_config.basis)
         final_basis = start.basis
     if first is not None and start is not None and config.select_reuse_start:  # the neural phase, from the start
-        if first.exposure is not None:  # the held-out photos' exposures start at 1 (the fitted ones' geometric mean)
+        resume = runs[chosen][0] if config.select_continue else None
+        if resume is not None:  # the chosen candidate's remaining steps
+            final_config = replace(final_config, steps=config.continue_steps(),
+                                   lr=final_config.lr * config.select_continue_lr)
+        fitted = (first if resume is None else resume).exposure
+        if fitted is not None:  # the held-out photos' exposures start at 1 (the fitted ones' geometric mean)
             scales = [1.0] * photos.count
             for k, f in enumerate(fit):
-                scales[f] = first.exposure[k]
+                scales[f] = fitted[k]
             first = replace(first, exposure=scales)
         final = _neural_phase(final_config, first, mesh, envmap, photos, tonemap, prediction, final_basis,
-                              anchor_available, truth, _offset(progress, total - config.steps, total, 2.0),
-                              should_stop, checkpoint("checkpoint.pt"), start)  # fmt: skip
+                              anchor_available, truth, _offset(progress, total - final_config.steps, total, 2.0),
+                              should_stop, checkpoint("checkpoint.pt"), start, resume)  # fmt: skip
     else:
         final = solve(final_config, mesh, envmap, photos, tonemap, prediction, final_basis, anchor_available, truth,
                       _offset(progress, total - config.total_steps(), total, 2.0), should_stop,
