@@ -508,6 +508,18 @@ def start_fits(monkeypatch) -> list[int]:
     return calls
 
 
+def resumed_after_stop(cfg: TTOConfig, args: tuple, folder, before_end: int):
+    """`solve(cfg, *args)` with checkpoints in `folder`, stopped `before_end` steps before its end (asserted), then
+    run again from those checkpoints: the resumed result."""
+    from neumatex_core.tto import solve
+
+    seen: list[int] = []
+    stopped = solve(cfg, *args, checkpoint_dir=folder, progress=lambda s, n, row: seen.append(s),
+                    should_stop=lambda: bool(seen) and seen[-1] >= cfg.run_steps() - before_end)  # fmt: skip
+    assert not stopped.finished and seen[-1] == cfg.run_steps() - before_end
+    return solve(cfg, *args, checkpoint_dir=folder)
+
+
 def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, truth_prediction, tmp_path, start_fits):
     """select_reuse_start: after the choice, the TTO with the chosen config is its neural phase alone, on every
     photo, from the start the choice made (the PBR phase on all photos but the held-out ones, fitted once for both
@@ -537,11 +549,7 @@ def test_select_reuse_start_goes_on_from_the_start_the_choice_made(example, trut
     assert again.selection == reused.selection and reused.selection["validation_photos"] == 4.0
     assert not torch.equal(again.params.tensor, reused.params.tensor)  # its start came from every photo's PBR fit
     # stopped two steps before the end, then resumed from the checkpoints: the same result
-    seen: list[int] = []
-    stopped = solve(cfg, *args, checkpoint_dir=tmp_path / "b", progress=lambda s, n, row: seen.append(s),
-                    should_stop=lambda: bool(seen) and seen[-1] >= cfg.run_steps() - 2)  # fmt: skip
-    assert not stopped.finished and seen[-1] == cfg.run_steps() - 2
-    resumed = solve(cfg, *args, checkpoint_dir=tmp_path / "b")
+    resumed = resumed_after_stop(cfg, args, tmp_path / "b", 2)
     assert resumed.finished and torch.equal(resumed.params.tensor, reused.params.tensor)
     exposed = solve(replace(cfg, photo_exposure=True), *args)
     assert exposed.exposure is not None and len(exposed.exposure) == example.photos.count
@@ -597,11 +605,7 @@ def test_select_continue_goes_on_from_the_chosen_candidate(example, truth_predic
     assert not torch.equal(again.params.tensor, went_on.params.tensor)
     # stopped one step before the end, then resumed from the checkpoints: the same result
     (tmp_path / "b").mkdir()
-    seen: list[int] = []
-    stopped = solve(cfg, *args, checkpoint_dir=tmp_path / "b", progress=lambda s, n, row: seen.append(s),
-                    should_stop=lambda: bool(seen) and seen[-1] >= cfg.run_steps() - 1)  # fmt: skip
-    assert not stopped.finished and seen[-1] == cfg.run_steps() - 1
-    resumed = solve(cfg, *args, checkpoint_dir=tmp_path / "b")
+    resumed = resumed_after_stop(cfg, args, tmp_path / "b", 1)
     assert resumed.finished and torch.equal(resumed.params.tensor, went_on.params.tensor)
     exposed = solve(replace(cfg, photo_exposure=True), *args)  # the candidate's exposures, the held-out photos' at 1
     assert exposed.exposure is not None and len(exposed.exposure) == example.photos.count
