@@ -22,6 +22,9 @@ result bit for bit where they choose the same basis. The choice is worked out fr
 bench/results/basis_start.jsonl and from the basis records of this file's rows, so e.g. the default's table covers
 objects that only a neighbouring variant was run on.
 
+`--since ISO_TIME` (UTC): rows written before it neither count as done nor are summarised, so a baseline can be run
+again beside a variant on one machine (results move between machines: docs/design-notes.md item 45).
+
 `--by-family BASELINE` (with --summarise) also prints each variant minus BASELINE per material family (the families
 of an object's regions, from its meta.json; an object with two counts in both rows) and over all objects, with the
 number of objects on which the variant is ahead.
@@ -208,9 +211,9 @@ def main() -> int:
     parser.add_argument("--against", default="pbr_start_anchor_01,pbr")
     parser.add_argument("--work", default="runs/bench-variants-clean")
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--since", default="", metavar="ISO_TIME", help="count only rows written since then as done "
-                        "(a baseline measured again on this machine, docs/design-notes.md item 44); with --summarise, "
-                        "only those rows are summarised")
+    parser.add_argument("--since", default="", metavar="ISO_TIME", help="UTC, e.g. 2026-11-28T16:03:10: count only "
+                        "rows written since then as done (a baseline run again on this machine beside a variant, "
+                        "docs/design-notes.md items 44-45); with --summarise, summarise only those rows")
     parser.add_argument("--summarise", action="store_true", help="print the paired table so far and stop")
     parser.add_argument("--fill-from", default="", help="with --summarise: comma-separated variants whose rows stand "
                         "in where they choose the same basis (see above)")
