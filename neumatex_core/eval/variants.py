@@ -131,13 +131,14 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the same with its choices scored at 16 path samples per pixel instead of 32, or on every other pixel of the
     # held-out photos: either would have saved 10-15 s of the demo's TTO; both were run on a few benchmark objects and
     # Cycles captures and dropped (design note 42: the scores move by up to 1.1 dB, and choices flip)
-    # the default with the TTO after the choice going on from the chosen candidate for the remaining half of the
-    # neural steps (`select_continue`, docs/design-notes.md item 45): the demo's time
-    "pbr_start_default_continue": {**EXTRACTION_DEFAULT, "select_continue": True},
-    # the same with those steps' schedule from half the learning rate (`select_continue_lr`)
-    "pbr_start_default_continue_lr05": {**EXTRACTION_DEFAULT, "select_continue": True, "select_continue_lr": 0.5},
     "pbr_start_default_spp16": {**EXTRACTION_DEFAULT, "validation_spp": 16},
     "pbr_start_default_stride2": {**EXTRACTION_DEFAULT, "validation_stride": 2},
+    # the default with the TTO after the choice going on from the chosen candidate for the remaining half of the
+    # neural steps (`select_continue`: 21 s of the demo's TTO), and the same with those steps' schedule from half the
+    # learning rate (`select_continue_lr`); run on objects 0-7 against the default and dropped (PathTrace -0.22 /
+    # -0.15 dB; docs/design-notes.md item 45)
+    "pbr_start_default_continue": {**EXTRACTION_DEFAULT, "select_continue": True},
+    "pbr_start_default_continue_lr05": {**EXTRACTION_DEFAULT, "select_continue": True, "select_continue_lr": 0.5},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,
