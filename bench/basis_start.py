@@ -66,7 +66,7 @@ def score_capture(capture: Path) -> dict[str, Any]:
         problem = build_problem(starts, mesh, envmap, fit, cap.tonemap, pred, basis, True)
         assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
         fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, tto.seed, tto.pbr_fit_steps,
-                         tto.pbr_bsdf_fit_steps)  # fmt: skip
+                         tto.pbr_bsdf_fit_steps, tto.pbr_fit_lr, tto.pbr_fit_batch)  # fmt: skip
         row[basis_id] = photo_psnr(problem.params, problem.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
                                    tto.seed + 1)  # fmt: skip
     wins = alternative_wins(row["pbr"], row[load_basis().basis_id], row[tto.alternative_basis], tto.basis_margin_db)

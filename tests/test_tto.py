@@ -713,6 +713,37 @@ def test_bsdf_refinement_recovers_what_the_encoder_conversion_loses(example, tru
     assert after < 0.03, (before, after)
 
 
+def test_the_start_fit_takes_its_schedule_from_the_config(example, monkeypatch):
+    """tto/pbr_start.py `fit_start` fits the planes with the config's pbr_fit_steps, pbr_fit_lr and pbr_fit_batch (the
+    eval variant `pbr_start_default_fit750` changes all three, docs/design-notes.md item 46), and the cpu preset's
+    are the defaults `fit_planes` itself has."""
+    import copy
+
+    from neumatex_core.tto import pbr_start
+    from neumatex_core.tto.optimise import TTOResult
+    from neumatex_core.tto.params import PBRTriplane
+
+    prediction = random_prediction(3)
+    pbr = PBRTriplane(Triplane.from_planes(prediction.triplane.planes.detach().clone()),
+                      copy.deepcopy(prediction.pbr_decoder))  # fmt: skip
+    seen: list[tuple[int, float, int]] = []
+
+    def fit_planes(neural, points, rho_d, latent, seed, steps, lr, batch) -> float:
+        seen.append((steps, lr, batch))
+        return 0.0
+
+    monkeypatch.setattr(pbr_start, "fit_planes", fit_planes)
+    cfg = TTOConfig.preset("tiny", init="pbr", reg="start", lambda_consistency=0.1, pbr_fit_steps=750, pbr_fit_lr=0.3,
+                           pbr_fit_batch=4096)  # fmt: skip
+    cfg.check()
+    pbr_start.fit_start(cfg, TTOResult(pbr, finished=True), example.mesh, example.envmap, example.photos,
+                        example.capture.tonemap, prediction, example.basis, True)  # fmt: skip
+    assert seen == [(750, 0.3, 4096)]
+    cpu = TTOConfig.preset("cpu")
+    assert (cpu.pbr_fit_steps, cpu.pbr_fit_lr, cpu.pbr_fit_batch) == (pbr_start.FIT_STEPS, pbr_start.FIT_LR,
+                                                                      pbr_start.FIT_BATCH)  # fmt: skip
+
+
 def test_iterate_averaging_returns_the_tails_mean_and_resumes(example, truth_prediction, tmp_path):
     """average_tail 0.5 over 8 steps: the result is the mean of the tensors after steps 5-8 (not the last one), and
     a run stopped inside the tail and resumed from its checkpoint ends bit for bit where an uninterrupted one does."""

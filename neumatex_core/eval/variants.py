@@ -139,6 +139,13 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # -0.15 dB; docs/design-notes.md item 45)
     "pbr_start_default_continue": {**EXTRACTION_DEFAULT, "select_continue": True},
     "pbr_start_default_continue_lr05": {**EXTRACTION_DEFAULT, "select_continue": True, "select_continue_lr": 0.5},
+    # the default with the start's plane fit (tto/pbr_start.py `fit_planes`) in half the Adam steps of half the
+    # points at six times the learning rate: on the demo's teapot a quarter of the fit's time (about 25 s of the
+    # demo's TTO) at half the G-buffer error, but on objects 0-10 against the default run again there PathTrace
+    # -0.15 +- 0.17 dB (two objects -1.2) and the Cycles coats 0.1 dB worse relit; dropped (docs/design-notes.md
+    # item 46)
+    "pbr_start_default_fit750": {**EXTRACTION_DEFAULT, "pbr_fit_steps": 750, "pbr_fit_lr": 0.3,
+                                 "pbr_fit_batch": 4096},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,

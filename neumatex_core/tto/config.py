@@ -53,7 +53,8 @@ RANGES: dict[str, Range] = {
     "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
-    "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_bsdf_fit_steps": Range(0, 100_000),
+    "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_fit_lr": Range(0, 100, lo_open=True),
+    "pbr_fit_batch": Range(1, 1 << 24), "pbr_bsdf_fit_steps": Range(0, 100_000),
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
     "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100),
@@ -113,6 +114,11 @@ class TTOConfig:
     # (bench/pbr_start.py, clean PathTrace, PBR solution 30.0 dB): 300 steps 26.9 dB, 1500 steps 29.0 dB (14 s),
     # the per-point conversion without the triplane 29.2 dB (docs/design-notes.md, item 26)
     pbr_fit_steps: int = 1500
+    # their Adam learning rate (cosine-decayed to 0) and surface points per step. 750 steps of 4096 points at 0.3 fit
+    # better in a quarter of the time, but the TTO from that start was no better (PathTrace -0.15 +- 0.17 dB on 11
+    # benchmark objects; docs/design-notes.md item 46)
+    pbr_fit_lr: float = 0.05
+    pbr_fit_batch: int = 8192
     # then Adam steps refining that start so its BSDF matches PBR's (tto/pbr_start.py `refine_to_pbr_bsdf`)
     pbr_bsdf_fit_steps: int = 0
     # init "pbr": the neural phase's learning rate is lr x neural_lr_scale (it starts at a fitted solution, not at

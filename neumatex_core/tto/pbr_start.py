@@ -46,7 +46,8 @@ from neumatex_core.tto.params import NeuralTriplane, Parametrisation, PBRTriplan
 
 FIT_POINTS = 1 << 15  # area samples the start is fitted on
 FIT_STEPS = 1500  # the default of TTOConfig.pbr_fit_steps
-FIT_LR = 0.05
+FIT_LR = 0.05  # the default of TTOConfig.pbr_fit_lr
+FIT_BATCH = 8192  # the default of TTOConfig.pbr_fit_batch
 BSDF_FIT_BATCH = 4096  # surface points per step of `refine_to_pbr_bsdf`, one (wi, wo) pair each
 BSDF_FIT_LR = 0.02
 VALIDATION_RAYS = 1 << 16  # rays per chunk of that render
@@ -54,14 +55,14 @@ VALIDATION_NEIGHBOUR_DEG = 30.0  # a held-out photo needs a fitted one within th
 
 
 def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor, latent: torch.Tensor, seed: int = 0,
-               steps: int = FIT_STEPS) -> float:
+               steps: int = FIT_STEPS, lr: float = FIT_LR, batch: int = FIT_BATCH) -> float:
     """Fit the planes of `neural` (in place; its decoder stays as it is) to G-buffers rho_d [P, 3], latent [P, 6]
     at surface points [P, 3]; returns the final mean squared error on (rho_d, (latent + 1) / 2), the G-buffer
     metric's scale. The decoder is not fitted even where TTO fine-tunes it: at this fit's learning rate it saturated
     (benchmark object 6: start error 0.08 instead of 1e-3, PathTrace 5.8 dB; docs/design-notes.md item 39), and a
     start made with the frozen decoder is the same whether or not TTO fine-tunes it afterwards."""
     want = torch.cat([rho_d, (latent + 1) / 2], dim=-1).detach()
-    opt = torch.optim.Adam([neural.tensor], lr=FIT_LR)
+    opt = torch.optim.Adam([neural.tensor], lr=lr)
     g = torch.Generator(device=points.device).manual_seed(seed)
 
     def error(idx: torch.Tensor | None = None) -> torch.Tensor:
@@ -72,8 +73,8 @@ def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor
     with frozen(neural.decoder):
         for step in range(steps):
             for group in opt.param_groups:
-                group["lr"] = FIT_LR * 0.5 * (1 + math.cos(math.pi * step / steps))
-            idx = torch.randint(0, points.shape[0], (8192,), generator=g, device=points.device)
+                group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * step / steps))
+            idx = torch.randint(0, points.shape[0], (batch,), generator=g, device=points.device)
             loss = error(idx)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -99,7 +100,8 @@ def frozen(module: torch.nn.Module | None) -> Iterator[None]:
 
 
 def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis: NeuralBasis, seed: int = 0,
-                     steps: int = FIT_STEPS, bsdf_steps: int = 0) -> float:
+                     steps: int = FIT_STEPS, bsdf_steps: int = 0, lr: float = FIT_LR,
+                     batch: int = FIT_BATCH) -> float:
     """Fit the planes of `neural` to the PBR field `pbr` expressed in the basis (`fit_planes` at area samples), then
     (bsdf_steps > 0) refine them at the same samples so the BSDFs match (`refine_to_pbr_bsdf`); returns the
     G-buffer fit's error."""
@@ -108,7 +110,7 @@ def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis
     with torch.no_grad():
         v = pbr.gbuffer(points, None)
         rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
-    error = fit_planes(neural, points, rho, latent, seed, steps)
+    error = fit_planes(neural, points, rho, latent, seed, steps, lr, batch)
     if bsdf_steps > 0:
         refine_to_pbr_bsdf(neural, basis, points, v, seed, bsdf_steps)
     return error
@@ -387,7 +389,7 @@ def fit_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Environme
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
-                           config.pbr_bsdf_fit_steps)
+                           config.pbr_bsdf_fit_steps, config.pbr_fit_lr, config.pbr_fit_batch)
     return FittedStart(problem.params, problem.mesh, mse)
 
 
