@@ -57,7 +57,8 @@ VALIDATION_NEIGHBOUR_DEG = 30.0  # a held-out photo needs a fitted one within th
 def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor, latent: torch.Tensor, seed: int = 0,
                steps: int = FIT_STEPS, lr: float = FIT_LR, batch: int = FIT_BATCH) -> float:
     """Fit the planes of `neural` (in place; its decoder stays as it is) to G-buffers rho_d [P, 3], latent [P, 6]
-    at surface points [P, 3]; returns the final mean squared error on (rho_d, (latent + 1) / 2), the G-buffer
+    at surface points [P, 3] (`steps` Adam steps of `batch` points drawn with replacement, at `lr` cosine-decayed
+    to 0); returns the final mean squared error on (rho_d, (latent + 1) / 2), the G-buffer
     metric's scale. The decoder is not fitted even where TTO fine-tunes it: at this fit's learning rate it saturated
     (benchmark object 6: start error 0.08 instead of 1e-3, PathTrace 5.8 dB; docs/design-notes.md item 39), and a
     start made with the frozen decoder is the same whether or not TTO fine-tunes it afterwards."""
