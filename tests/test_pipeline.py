@@ -405,8 +405,10 @@ def test_every_eval_table_is_described_and_valid():
     # its choices scored with fewer samples, or on fewer pixels (tried 2026-11-28, design note 42)
     assert variant_config("pbr_start_default_spp16", extraction) == replace(default, validation_spp=16)
     assert variant_config("pbr_start_default_stride2", extraction) == replace(default, validation_stride=2)
-    # the default with another seed, and its start fitted in a quarter of the time (design note 46)
+    # the default with another seed, its choice's candidates at a quarter of the steps, and its start fitted in a
+    # quarter of the time (design note 46)
     assert variant_config("pbr_start_default_seed1", extraction) == replace(default, seed=1)
+    assert variant_config("pbr_start_default_f025", extraction) == replace(default, select_fraction=0.25)
     fit750 = variant_config("pbr_start_default_fit750", extraction)
     assert fit750 == replace(default, pbr_fit_steps=750, pbr_fit_lr=0.3, pbr_fit_batch=4096)
     # the default before the material decoder was left frozen in basis v4 (2026-11-28)
