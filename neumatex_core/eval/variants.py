@@ -140,7 +140,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_continue": {**EXTRACTION_DEFAULT, "select_continue": True},
     "pbr_start_default_continue_lr05": {**EXTRACTION_DEFAULT, "select_continue": True, "select_continue_lr": 0.5},
     # the default with the start's plane fit (tto/pbr_start.py `fit_planes`) in half the Adam steps of half the
-    # points at six times the learning rate: on the demo's teapot a quarter of the fit's time (about 25 s of the
+    # points at six times the learning rate: on the demo's teapot a quarter of the fit's time (20 s of the
     # demo's TTO) at half the G-buffer error, but on objects 0-10 against the default run again there PathTrace
     # -0.15 +- 0.17 dB (two objects -1.2) and the Cycles coats 0.1 dB worse relit; dropped (docs/design-notes.md
     # item 46)
