@@ -45,9 +45,10 @@ from neumatex_core.tto.optimise import Progress, Truth, TTOResult, build_problem
 from neumatex_core.tto.params import NeuralTriplane, Parametrisation, PBRTriplane
 
 FIT_POINTS = 1 << 15  # area samples the start is fitted on
-FIT_STEPS = 1500  # the default of TTOConfig.pbr_fit_steps
-FIT_LR = 0.05  # the default of TTOConfig.pbr_fit_lr
-FIT_BATCH = 8192  # the default of TTOConfig.pbr_fit_batch
+# The start fit's schedule when no config is given: TTOConfig's defaults, written once there.
+FIT_STEPS: int = TTOConfig.pbr_fit_steps
+FIT_LR: float = TTOConfig.pbr_fit_lr
+FIT_BATCH: int = TTOConfig.pbr_fit_batch
 BSDF_FIT_BATCH = 4096  # surface points per step of `refine_to_pbr_bsdf`, one (wi, wo) pair each
 BSDF_FIT_LR = 0.02
 VALIDATION_RAYS = 1 << 16  # rays per chunk of that render
