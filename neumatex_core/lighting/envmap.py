@@ -166,9 +166,13 @@ class EnvironmentMap:
         fx = (x - x0).unsqueeze(-1)
         fy = (y - y0).unsqueeze(-1)
         x1 = (x0 + 1) % w
-        t = self.texels
-        top = t[y0, x0] * (1 - fx) + t[y0, x1] * fx
-        bottom = t[y0 + 1, x0] * (1 - fx) + t[y0 + 1, x1] * fx
+        # gathers of rows of the flattened map: half the time of indexing texels[y, x] with two index tensors, and
+        # the same values (docs/design-notes.md item 47)
+        t = self.texels.reshape(h * w, 3)
+        row0 = y0 * w
+        row1 = row0 + w
+        top = t.index_select(0, row0 + x0) * (1 - fx) + t.index_select(0, row0 + x1) * fx
+        bottom = t.index_select(0, row1 + x0) * (1 - fx) + t.index_select(0, row1 + x1) * fx
         return top * (1 - fy) + bottom * fy
 
     def eval(self, directions: torch.Tensor) -> torch.Tensor:
@@ -221,7 +225,7 @@ class EnvironmentMap:
         col = torch.clamp((uv[:, 0] * w).long(), 0, w - 1)
         row = torch.clamp((uv[:, 1] * h).long(), 0, h - 1)
         sin_theta = torch.sin(math.pi * uv[:, 1])
-        p = self.bin_prob[row, col] * (w * h) / (2 * math.pi * math.pi)
+        p = self.bin_prob.reshape(-1).index_select(0, row * w + col) * (w * h) / (2 * math.pi * math.pi)
         return torch.where(sin_theta > 1e-7, p / sin_theta.clamp_min(1e-7), torch.zeros_like(p))
 
     def pdf(self, directions: torch.Tensor) -> torch.Tensor:
