@@ -32,7 +32,7 @@ def side_by_side(tasks: Sequence[Callable[[], T]], device: torch.device) -> list
     nothing they write. A task's numbers depend on the threads it runs on, as any torch computation's: the same
     settings on one machine give the same bits."""
     threads = torch.get_num_threads()
-    if len(tasks) < 2 or device.type != "cpu" or threads < len(tasks):
+    if not runs_side_by_side(len(tasks), device):
         return [task() for task in tasks]
     torch.set_num_threads(threads // len(tasks))
     try:
@@ -41,3 +41,8 @@ def side_by_side(tasks: Sequence[Callable[[], T]], device: torch.device) -> list
             return [future.result() for future in futures]
     finally:
         torch.set_num_threads(threads)
+
+
+def runs_side_by_side(n_tasks: int, device: torch.device) -> bool:
+    """Whether `side_by_side` runs n_tasks tasks at once: on the CPU with at least one torch thread per task."""
+    return n_tasks >= 2 and device.type == "cpu" and torch.get_num_threads() >= n_tasks

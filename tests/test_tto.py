@@ -852,6 +852,54 @@ def test_choose_basis_takes_the_alternative_where_the_default_cannot_hold_the_pb
         replace(cfg, alternative_basis="nmx-basis-v9").check()
 
 
+def test_choose_basis_makes_both_starts_side_by_side_with_the_same_result(example, monkeypatch):
+    """With two torch threads `choose_basis` makes the start in the alternative basis beside the start in the
+    default one (`side_by_side`, before it is known to be needed: docs/design-notes.md item 47), each in its own
+    thread, and the choice, its record and the start are what one thread gives one after the other, bit for bit; where
+    the alternative is not needed its start is dropped and the record is the same as without it."""
+    import threading
+
+    from neumatex_core.materials.neural_basis import BASIS_V4
+    from neumatex_core.tto import pbr_start
+    from neumatex_core.tto.optimise import TTOResult
+
+    prediction = random_prediction(3)
+    pbr, photos = _pbr_scene(example, prediction, [1.0, 0.71, 0.29, 0.3, 1.0])
+    cfg = TTOConfig.preset("tiny", max_bounces=1, init="pbr", reg="start", lambda_consistency=0.1,
+                           alternative_basis=BASIS_V4, pbr_fit_steps=20, basis_margin_db=-100.0)  # fmt: skip
+    args = (TTOResult(pbr, finished=True), example.mesh, example.envmap, photos, photos, example.capture.tonemap,
+            prediction, example.basis, True)  # fmt: skip
+    fitted_in: list[tuple[str, str]] = []
+    real_fit = pbr_start.fit_start
+
+    def fit_start(*a, **k):  # type: ignore[no-untyped-def]
+        fitted_in.append((a[7].basis_id, threading.current_thread().name))
+        return real_fit(*a, **k)
+
+    monkeypatch.setattr(pbr_start, "fit_start", fit_start)
+    assert torch.get_num_threads() == 1  # this module's (one_thread)
+    alone = pbr_start.choose_basis(cfg, *args)
+    here = threading.current_thread().name
+    assert [t for _, t in fitted_in] == [here, here]
+    fitted_in.clear()
+    torch.set_num_threads(2)
+    try:
+        paired = pbr_start.choose_basis(cfg, *args)
+        assert torch.get_num_threads() == 2
+        assert {b for b, _ in fitted_in} == {example.basis.basis_id, BASIS_V4}
+        assert len({t for _, t in fitted_in}) == 2 and here not in {t for _, t in fitted_in}
+        # not needed (the default basis's start within the margin of PBR): made, dropped, and not recorded
+        gap = alone.record["basis_pbr_psnr"] - alone.record["basis_start_psnr"]
+        kept = pbr_start.choose_basis(replace(cfg, basis_margin_db=gap + 0.5), *args)
+    finally:
+        torch.set_num_threads(1)
+    assert alone is not None and paired is not None and alone.switched and paired.switched
+    assert paired.record == alone.record and paired.mse == alone.mse
+    assert torch.equal(paired.planes, alone.planes)
+    assert kept is not None and not kept.switched and "basis_alternative_psnr" not in kept.record
+    assert kept.record["basis_start_psnr"] == alone.record["basis_start_psnr"]
+
+
 def test_the_decoder_is_fine_tuned_in_the_default_basis_only_unless_asked(example, truth_prediction):
     """decoder_in_other_basis off: the neural phase fine-tunes the LMRM's material decoder only in the default
     basis, the one it was trained for (in basis v4 the fine-tuning cost the Cycles metals 0.6-2.3 dB relit:
