@@ -50,11 +50,14 @@ CONSISTENT_01: dict[str, Any] = {**OURS, "init": "pbr", "reg": "start", "lambda_
 CHOOSE_V4: dict[str, Any] = {**CONSISTENT_01, "select_uniform": True, "select_fraction": 0.5,
                              "alternative_basis": BASIS_V4, "basis_margin_db": 3.0}
 
-# the extraction's default since 2026-11-28 (design note 41; pipeline.NEURAL_FROM_PBR, which a test asserts): both
-# phases' decoders fine-tuned (the material decoder only in the default basis), the TTO after the choice going on
-# from the choice's start
-EXTRACTION_DEFAULT: dict[str, Any] = {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001,
-                                      "select_reuse_start": True, "decoder_in_other_basis": False}
+# the extraction's default from 2026-11-28 to 2026-11-29 (design note 41): both phases' decoders fine-tuned (the
+# material decoder only in the default basis), the TTO after the choice going on from the choice's start; the
+# variants measured against it build on it
+DEFAULT_41: dict[str, Any] = {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 0.001, "select_reuse_start": True,
+                              "decoder_in_other_basis": False}
+# the extraction's default since 2026-11-29 (design note 47; pipeline.NEURAL_FROM_PBR and TTOConfig, which a test
+# asserts): that one with the choice's candidates at a quarter of the neural steps
+EXTRACTION_DEFAULT: dict[str, Any] = {**DEFAULT_41, "select_fraction": 0.25}
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
@@ -126,33 +129,34 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # metals, is the fine-tuning what costs relighting?
     "pbr_start_default_reuse_frozen": {**CHOOSE_V4, "select_reuse_start": True},
     # pbr_start_default_reuse with the material decoder frozen where it runs in basis v4 (the extraction's default
-    # since 2026-11-28, design note 41: fine-tuned there it cost the Cycles metals 0.6-2.3 dB relit)
-    "pbr_start_default_alt_frozen": EXTRACTION_DEFAULT,
+    # from 2026-11-28 to 2026-11-29, design note 41: fine-tuned there it cost the Cycles metals 0.6-2.3 dB relit)
+    "pbr_start_default_alt_frozen": DEFAULT_41,
     # the same with its choices scored at 16 path samples per pixel instead of 32, or on every other pixel of the
     # held-out photos: either would have saved 10-15 s of the demo's TTO; both were run on a few benchmark objects and
     # Cycles captures and dropped (design note 42: the scores move by up to 1.1 dB, and choices flip)
-    "pbr_start_default_spp16": {**EXTRACTION_DEFAULT, "validation_spp": 16},
-    "pbr_start_default_stride2": {**EXTRACTION_DEFAULT, "validation_stride": 2},
+    "pbr_start_default_spp16": {**DEFAULT_41, "validation_spp": 16},
+    "pbr_start_default_stride2": {**DEFAULT_41, "validation_stride": 2},
     # the default with the TTO after the choice going on from the chosen candidate for the remaining half of the
     # neural steps (`select_continue`: 21 s of the demo's TTO), and the same with those steps' schedule from half the
     # learning rate (`select_continue_lr`); run on objects 0-7 against the default and dropped (PathTrace -0.22 /
     # -0.15 dB; docs/design-notes.md item 45)
-    "pbr_start_default_continue": {**EXTRACTION_DEFAULT, "select_continue": True},
-    "pbr_start_default_continue_lr05": {**EXTRACTION_DEFAULT, "select_continue": True, "select_continue_lr": 0.5},
+    "pbr_start_default_continue": {**DEFAULT_41, "select_continue": True},
+    "pbr_start_default_continue_lr05": {**DEFAULT_41, "select_continue": True, "select_continue_lr": 0.5},
     # the default with the start's plane fit (tto/pbr_start.py `fit_planes`) in half the Adam steps of half the
     # points at six times the learning rate: on the demo's teapot a quarter of the fit's time (20 s of the
     # demo's TTO) at half the G-buffer error, but on objects 0-10 against the default run again there PathTrace
     # -0.15 +- 0.17 dB (two objects -1.2) and the Cycles coats 0.1 dB worse relit; dropped (docs/design-notes.md
     # item 46)
-    "pbr_start_default_fit750": {**EXTRACTION_DEFAULT, "pbr_fit_steps": 750, "pbr_fit_lr": 0.3,
+    "pbr_start_default_fit750": {**DEFAULT_41, "pbr_fit_steps": 750, "pbr_fit_lr": 0.3,
                                  "pbr_fit_batch": 4096},
-    # the default with the choice's candidates at a quarter of the neural steps instead of half: where it makes the
-    # same choices its result is the same bit for bit, and it saves 2 x 100 candidate steps (about 13 s of the demo)
-    "pbr_start_default_f025": {**EXTRACTION_DEFAULT, "select_fraction": 0.25},
+    # that default with the choice's candidates at a quarter of the neural steps instead of half: where it makes the
+    # same choices its result is the same bit for bit, and it saves 2 x 100 candidate steps (the extraction's
+    # default since 2026-11-29, design note 47)
+    "pbr_start_default_f025": EXTRACTION_DEFAULT,
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)
-    "pbr_start_default_seed1": {**EXTRACTION_DEFAULT, "seed": 1},
+    "pbr_start_default_seed1": {**DEFAULT_41, "seed": 1},
     # the PBR baseline with its PBR head fine-tuned the same way (the default's PBR phase does it too): how much of
     # the tuned default's gain a PBR material gets from the same freedom
     "pbr_tuned_0001": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "train_decoder": True,
