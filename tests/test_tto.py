@@ -391,7 +391,7 @@ def test_select_anchor_keeps_the_result_that_reproduces_held_out_photos_better(e
     assert part.cameras == [photos.cameras[3], photos.cameras[1]] and part.count == 2
 
     cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
-                           lambda_reg=1.0, select_anchor=True, select_margin_db=100.0)  # fmt: skip
+                           lambda_reg=1.0, select_anchor=True, select_margin_db=100.0, select_fraction=0.5)  # fmt: skip
     cfg.check()
     args = (example.mesh, example.envmap, photos, example.capture.tonemap, perturbed(truth_prediction, 0.2),
             example.basis)  # fmt: skip
