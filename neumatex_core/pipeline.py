@@ -33,6 +33,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -43,6 +44,7 @@ from neumatex_core.atomic import write_json_atomic
 from neumatex_core.capture import Capture, CaptureError, load_capture, validate_capture
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
+from neumatex_core.device import resolve_device, side_by_side
 from neumatex_core.fields.decoders import DECODERS, MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.geometry.camera import Camera, preset_views
@@ -195,8 +197,6 @@ class ExtractConfig:
         return tto
 
     def torch_device(self) -> torch.device:
-        from neumatex_core.device import resolve_device
-
         return resolve_device(self.device)
 
     def to_dict(self) -> dict[str, Any]:
@@ -653,8 +653,10 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
             picks = np.linspace(0, len(cap.frames) - 1, n_eval).round().astype(int).tolist()
             cams = [norm.cameras[i] for i in picks]
             eval_tracer = PathTracerConfig(spp=config.eval_spp, max_bounces=max(tto.max_bounces, 2))
-            renders = render_asset(asset, norm.envmap, cams, eval_tracer, seed=config.seed)
-            pbr_renders = render_asset(asset, norm.envmap, cams, eval_tracer, source="pbr", seed=config.seed)
+            # neural and PBR fallback side by side where there are torch threads for both: the same images
+            renders, pbr_renders = side_by_side(
+                [partial(render_asset, asset, norm.envmap, cams, eval_tracer, source=source, seed=config.seed)
+                 for source in ("auto", "pbr")], device)  # fmt: skip
             scores, pbr_scores = [], []
             for i, img, pbr_img in zip(picks, renders, pbr_renders, strict=True):
                 photo = torch.as_tensor(cap.load_image(i))

@@ -283,6 +283,35 @@ def test_previews_are_written_and_read(asset, envmap, tmp_path):
     asset.previews = {}
 
 
+def test_previews_render_both_sources_side_by_side_with_the_same_images(asset, envmap, monkeypatch):
+    """With two torch threads the neural and PBR-fallback previews render side by side, each in its own thread of one
+    torch thread (`side_by_side`; docs/design-notes.md item 47), and are the images one thread renders one after the
+    other, bit for bit."""
+    import threading
+
+    from neumatex_core.assets import render
+
+    rendered_in: list[str] = []
+    real = render.render_asset
+
+    def render_asset_seen(*a, **k):  # type: ignore[no-untyped-def]
+        rendered_in.append(threading.current_thread().name)
+        return real(*a, **k)
+
+    monkeypatch.setattr(render, "render_asset", render_asset_seen)
+    alone = make_previews(asset, envmap, resolution=16, spp=2, views=(0, 4))
+    assert rendered_in == [threading.current_thread().name] * 2
+    rendered_in.clear()
+    torch.set_num_threads(2)
+    try:
+        paired = make_previews(asset, envmap, resolution=16, spp=2, views=(0, 4))
+    finally:
+        torch.set_num_threads(1)
+    assert len(set(rendered_in)) == 2 and threading.current_thread().name not in rendered_in
+    assert paired.keys() == alone.keys() and all(np.array_equal(paired[k], alone[k]) for k in alone)
+    asset.previews = {}
+
+
 def test_export_writes_each_format(asset, tmp_path):
     (glb,) = export_asset(asset, "glb", tmp_path / "glb")
     assert glb.name == "test_object.glb" and glb.stat().st_size > 0

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from functools import partial
 
 import numpy as np
 import torch
 
 from neumatex_core.assets.asset import MaterialAsset, Source
 from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.device import side_by_side
 from neumatex_core.geometry.camera import Camera, preset_views
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
@@ -45,8 +47,12 @@ def make_previews(asset: MaterialAsset, envmap: EnvironmentMap, resolution: int 
     tm = tonemap or Tonemap()
     cfg = PathTracerConfig(spp=spp, max_bounces=3)
     previews: dict[str, np.ndarray] = {}
-    for source, label in (("auto", "neural"), ("pbr", "pbr")):
-        for v, img in zip(views, render_asset(asset, envmap, cams, cfg, source), strict=True):  # type: ignore[arg-type]
+    sources: tuple[Source, Source] = ("auto", "pbr")
+    # the two sources side by side where there are torch threads for both (`side_by_side`): the same images
+    renders = side_by_side([partial(render_asset, asset, envmap, cams, cfg, source) for source in sources],
+                           envmap.device)  # fmt: skip
+    for label, images in zip(("neural", "pbr"), renders, strict=True):
+        for v, img in zip(views, images, strict=True):
             previews[f"{label}_view{v:02d}"] = tm.apply(img).cpu().numpy()
     asset.previews = previews
     return previews
