@@ -421,9 +421,10 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
 
     pbr_psnr = photo_psnr(first.params, first.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
     # Where two tasks run side by side (two torch threads or more on the CPU) the start in the alternative is made
-    # beside the start in `basis` before it is known to be needed: about 1.1x the time of one start where it is not
-    # needed, about 0.6x that of the two one after the other where it is (the demo's coated teapot, the Cycles metals,
-    # 9 of 16 benchmark objects; docs/design-notes.md item 47). Each start is the same as made alone on one thread.
+    # beside the start in `basis` before it is known to be needed. Where it is needed (the demo's coated teapot, the
+    # Cycles metals, 9 of 16 benchmark objects) that saved 12-28 s of the demo's TTO; where it is not, the start in
+    # `basis` takes about 2 / 1.77 times as long as alone (two tasks on two threads: docs/design-notes.md items 44
+    # and 47). Each start is the same as made alone on one thread.
     beside: tuple[torch.Tensor, float, float] | None = None
     if runs_side_by_side(2, first.params.tensor.device):
         (planes, mse, own), beside = side_by_side([partial(start_in, basis), partial(start_in, alternative)],
