@@ -33,7 +33,6 @@ import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -44,7 +43,7 @@ from neumatex_core.atomic import write_json_atomic
 from neumatex_core.capture import Capture, CaptureError, load_capture, validate_capture
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
-from neumatex_core.device import resolve_device, side_by_side
+from neumatex_core.device import resolve_device
 from neumatex_core.fields.decoders import DECODERS, MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.geometry.camera import Camera, preset_views
@@ -589,7 +588,7 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
     from safetensors.torch import load_file
 
     from neumatex_core.assets import asset_from_textures, asset_from_triplane, write_asset
-    from neumatex_core.assets.render import make_previews, render_asset
+    from neumatex_core.assets.render import make_previews, render_asset, render_neural_and_pbr
     from neumatex_core.assets.uv_unwrap import unwrap
     from neumatex_core.eval.metrics import psnr
     from neumatex_core.fields.neural_field import TriplaneMaterialField
@@ -653,10 +652,7 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
             picks = np.linspace(0, len(cap.frames) - 1, n_eval).round().astype(int).tolist()
             cams = [norm.cameras[i] for i in picks]
             eval_tracer = PathTracerConfig(spp=config.eval_spp, max_bounces=max(tto.max_bounces, 2))
-            # neural and PBR fallback side by side where there are torch threads for both: the same images
-            renders, pbr_renders = side_by_side(
-                [partial(render_asset, asset, norm.envmap, cams, eval_tracer, source=source, seed=config.seed)
-                 for source in ("auto", "pbr")], device)  # fmt: skip
+            renders, pbr_renders = render_neural_and_pbr(asset, norm.envmap, cams, eval_tracer, seed=config.seed)
             scores, pbr_scores = [], []
             for i, img, pbr_img in zip(picks, renders, pbr_renders, strict=True):
                 photo = torch.as_tensor(cap.load_image(i))

@@ -39,6 +39,16 @@ def render_asset(asset: MaterialAsset, envmap: EnvironmentMap, cameras: Sequence
     return images
 
 
+def render_neural_and_pbr(asset: MaterialAsset, envmap: EnvironmentMap, cameras: Sequence[Camera],
+                          config: PathTracerConfig | None = None,
+                          seed: int = 0) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """`render_asset` of the asset's own field ("auto") and of its PBR fallback, side by side where there are torch
+    threads for both (`side_by_side`; docs/design-notes.md item 47): the same images as one after the other."""
+    neural, pbr = side_by_side([partial(render_asset, asset, envmap, cameras, config, source, seed)
+                                for source in ("auto", "pbr")], envmap.device)  # fmt: skip
+    return neural, pbr
+
+
 def make_previews(asset: MaterialAsset, envmap: EnvironmentMap, resolution: int = 256, spp: int = 64,
                   views: Sequence[int] = PREVIEW_VIEWS, tonemap: Tonemap | None = None) -> dict[str, np.ndarray]:
     """Display images of preset orbit views of the neural field and of the PBR fallback; stored in the asset."""
@@ -47,11 +57,7 @@ def make_previews(asset: MaterialAsset, envmap: EnvironmentMap, resolution: int 
     tm = tonemap or Tonemap()
     cfg = PathTracerConfig(spp=spp, max_bounces=3)
     previews: dict[str, np.ndarray] = {}
-    sources: tuple[Source, Source] = ("auto", "pbr")
-    # the two sources side by side where there are torch threads for both (`side_by_side`): the same images
-    renders = side_by_side([partial(render_asset, asset, envmap, cams, cfg, source) for source in sources],
-                           envmap.device)  # fmt: skip
-    for label, images in zip(("neural", "pbr"), renders, strict=True):
+    for label, images in zip(("neural", "pbr"), render_neural_and_pbr(asset, envmap, cams, cfg), strict=True):
         for v, img in zip(views, images, strict=True):
             previews[f"{label}_view{v:02d}"] = tm.apply(img).cpu().numpy()
     asset.previews = previews
