@@ -402,7 +402,10 @@ def test_every_eval_table_is_described_and_valid():
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
     # the default's own variant (since 2026-11-29, design note 47) is the extraction's TTO; the default before it
     # differs only in the choice's length, and the variants measured against it build on it
-    assert variant_config("pbr_start_default_f025", TTOConfig.preset("cpu")) == extraction
+    from neumatex_core.eval.variants import DEFAULT_VARIANT
+
+    assert DEFAULT_VARIANT == "pbr_start_default_f025" and DEFAULT_VARIANT in TABLES["default"]
+    assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
     default = variant_config("pbr_start_default_alt_frozen", TTOConfig.preset("cpu"))
     assert default == replace(extraction, select_fraction=0.5)
     # its choices scored with fewer samples, or on fewer pixels (tried 2026-11-28, design note 42)

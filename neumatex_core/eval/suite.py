@@ -34,7 +34,7 @@ from neumatex_core.atomic import write_json_atomic
 from neumatex_core.config import command_line, option
 from neumatex_core.eval.harness import TRUTH
 from neumatex_core.eval.plots import DifferenceRow, difference_chart
-from neumatex_core.eval.variants import TABLES, VARIANTS
+from neumatex_core.eval.variants import DEFAULT_VARIANT, TABLES, VARIANTS
 
 METRICS = ("psnr_pathtrace", "psnr_basecolor", "psnr_latents", "psnr_relight", "tto_minutes", "psnr_pathtrace_clean",
            "psnr_relight_clean")
@@ -47,6 +47,9 @@ LABELS = {
 ROW_NAMES = {
     "pbr": "PBR baseline (NVDiffRecMC++: PBR head init, PBR TTO)",
     "ours": "Ours (neural material, LMRM init, unc. reg)",
+    DEFAULT_VARIANT: "**Ours, the extraction's default** (neural from the PBR solution, consistency term, choices on "
+                     "held-out photos)",
+    "pbr_tuned_0001": "PBR baseline, its head fine-tuned like the default's PBR phase",
     "t2a_uv": "(a) UV", "t2b_uv_lmrm": "(b) UV + LMRM init", "t2c_uv_lmrm_unc": "(c) UV + LMRM init + unc. reg",
     "t2d_triplane": "(d) triplane", "t2e_triplane_lmrm": "(e) triplane + LMRM init",
     "t2f_triplane_lmrm_unc": "(f) triplane + LMRM init + unc. reg (ours)", "t3a_no_tto": "(a) no TTO (LMRM only)",
@@ -95,6 +98,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                "psnr_relight_clean"),
     "table3": ("psnr_basecolor", "psnr_latents", "psnr_pathtrace", "psnr_pathtrace_clean", "psnr_relight",
                "psnr_relight_clean"),
+    "default": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                "psnr_relight_clean", "tto_minutes"),
     "starts": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
                "psnr_relight_clean", "tto_minutes"),
     # Latents are left out: another basis's latents are not comparable with the ground truth's
@@ -119,6 +124,7 @@ TABLE_TITLES = {
     "table1": "Table 1: PBR baseline vs neural material",
     "table2": "Table 2: design ablation (UV / triplane x LMRM init x uncertainty regulariser)",
     "table3": "Table 3: TTO regularisation",
+    "default": "The extraction's default against the PBR baseline (issue 14)",
     "starts": "Where the neural TTO starts (issue 14): LMRM or the PBR solution",
     "basis": "The neural basis (issue 14): default (v1) or v2, from the PBR solution",
     "longer": "Longer TTO (issue 14): neural from the PBR solution vs PBR at equal steps",
@@ -129,7 +135,8 @@ TABLE_TITLES = {
     "decorrelated": "The photometric loss without the render's variance: independent sample errors (issue 14)",
     "consistency": "Points that start alike change alike: the consistency term instead of the anchor (issue 14)",
 }  # fmt: skip
-FIGURE_VARIANTS = ("ours", "pbr")
+FIGURE_VARIANTS = ("ours", "pbr")  # the figure grid's columns; the default's join them where it was run
+FIGURE_OPTIONAL = (DEFAULT_VARIANT, "t3a_no_tto")
 
 
 @dataclass
@@ -141,7 +148,7 @@ class EvalConfig:
                        positional=True)
     out: str = option("runs/eval", "work folder and per-(object, variant) results; rerun the command to resume")
     objects: str = option("all", "'all', 'first:N', 'every:K' (objects 0, K, 2K, ...) or comma-separated ids")
-    tables: str = option("table1,table2,table3", "comma-separated subset of " + ", ".join(TABLES))
+    tables: str = option("table1,table2,table3,default", "comma-separated subset of " + ", ".join(TABLES))
     preset: Literal["cpu", "gpu", "tiny"] = option("cpu", "extraction preset (TTO schedule, sample counts)")
     steps: int = option(0, "TTO steps (0: the preset's)")
     render_views: int = option(17, "orbital views scored for PSNR PathTrace (0..N-1; 17: all)")
@@ -214,7 +221,7 @@ def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], ru
         target = Path(out) / "results" / obj / f"{variant}.json"
         if target.is_file():
             continue
-        figure_dir = Path(out) / "figures" / obj / variant if figure and variant in FIGURE_VARIANTS + ("t3a_no_tto",) \
+        figure_dir = Path(out) / "figures" / obj / variant if figure and variant in FIGURE_VARIANTS + FIGURE_OPTIONAL \
             else None  # fmt: skip
         metrics = evaluate_variant(Path(data) / obj, Path(out) / "work" / obj, variant, config,
                                    render_views=tuple(range(render_views)), relight_views=tuple(relight_views),
@@ -426,6 +433,43 @@ def _clean_detail(res: Results) -> str:
             + "; " + _fmt_diff("ground-truth material - PBR", paired_difference(res, TRUTH, "pbr", pc)))
 
 
+# Issue 14's targets for the extraction's default on the benchmark, on the clean scoring: (label, variant, baseline,
+# metric, threshold). A difference's target holds when it is resolved above the threshold (mean - 2 standard errors
+# >= threshold); a level's (no baseline) when the mean over objects reaches it; "within" (baseline first) when the
+# baseline's lead is at most the threshold.
+TARGETS: tuple[tuple[str, str, str, str, float], ...] = (
+    ("PathTrace clean: the default - PBR >= +3 dB, resolved", DEFAULT_VARIANT, "pbr", "psnr_pathtrace_clean", 3.0),
+    ("PathTrace clean: the default within 1.5 dB of the ground-truth material", TRUTH, DEFAULT_VARIANT,
+     "psnr_pathtrace_clean", -1.5),
+    ("Relight clean (held-out lighting): the default - PBR >= +2 dB, resolved", DEFAULT_VARIANT, "pbr",
+     "psnr_relight_clean", 2.0),
+    ("BaseColor: the default >= 22 dB", DEFAULT_VARIANT, "", "psnr_basecolor", 22.0),
+    ("Latents: the default >= 20 dB", DEFAULT_VARIANT, "", "psnr_latents", 20.0),
+)
+
+
+def targets(res: Results) -> list[tuple[str, bool | None, str]]:
+    """Issue 14's targets (`TARGETS`), each as (target, met (None: not measured), the numbers)."""
+    checks: list[tuple[str, bool | None, str]] = []
+    for label, a, b, metric, threshold in TARGETS:
+        if not b:  # a level: the mean over the objects that have it
+            values = list(res.get(a, {}).get(metric, {}).values())
+            ok = None if not values else float(np.mean(values)) >= threshold
+            detail = (f"{np.mean(values):.2f} ± {np.std(values):.2f} dB (mean ± std, n={len(values)})" if values
+                      else "no results")  # fmt: skip
+        elif threshold < 0:  # "within": a - b (the reference's lead) at most -threshold
+            d = paired_difference(res, a, b, metric)
+            ok = None if math.isnan(d[0]) else d[0] <= -threshold
+            detail = _fmt_diff("ground-truth material - the default", d)
+        else:
+            d = paired_difference(res, a, b, metric)
+            ok = None if math.isnan(d[0]) or math.isnan(d[1]) else d[0] - 2 * d[1] >= threshold
+            detail = _fmt_diff("the default - PBR", d) + (
+                "" if math.isnan(d[1]) else f"; mean - 2 standard errors {d[0] - 2 * d[1]:+.2f} dB")
+        checks.append((label, ok, detail))
+    return checks
+
+
 def object_families(data: Path, objects: list[str]) -> dict[str, list[str]]:
     """object -> the material families of its regions (from its meta.json), for the objects that record them."""
     found: dict[str, list[str]] = {}
@@ -439,14 +483,15 @@ def object_families(data: Path, objects: list[str]) -> dict[str, list[str]]:
     return found
 
 
-def family_lines(res: Results, families: dict[str, list[str]]) -> list[str]:
-    """Markdown table: ours - PBR (PathTrace, BaseColor) and the headroom, over the objects containing each family.
+def family_lines(res: Results, families: dict[str, list[str]], variant: str = "ours", name: str = "ours") -> list[str]:
+    """Markdown table: `variant` - PBR (PathTrace, BaseColor) and the headroom, over the objects containing each
+    family (`name`: the variant in the column heads).
 
     An object with two families counts in both rows, so the rows overlap and do not add up."""
     pt, bc, pc = "psnr_pathtrace", "psnr_basecolor", "psnr_pathtrace_clean"
-    columns = [("ours", pt), (TRUTH, pt), ("ours", bc)] + ([("ours", pc)] if has_metric(res, pc) else [])
-    lines = ["| family | objects | ours - PBR, PathTrace | ground truth - PBR, PathTrace | ours - PBR, BaseColor |"
-             + (" ours - PBR, PathTrace clean |" if len(columns) > 3 else ""), "|---|---|---|---|---|"
+    columns = [(variant, pt), (TRUTH, pt), (variant, bc)] + ([(variant, pc)] if has_metric(res, pc) else [])
+    lines = [f"| family | objects | {name} - PBR, PathTrace | ground truth - PBR, PathTrace | {name} - PBR, BaseColor |"
+             + (f" {name} - PBR, PathTrace clean |" if len(columns) > 3 else ""), "|---|---|---|---|---|"
              + "---|" * (len(columns) - 3)]
     for family in sorted({f for fs in families.values() for f in fs}):
         keep = {o for o, fs in families.items() if family in fs}
@@ -454,7 +499,7 @@ def family_lines(res: Results, families: dict[str, list[str]]) -> list[str]:
                         for v, rows in res.items()}  # fmt: skip
         diffs = [paired_difference(sub, a, "pbr", m) for a, m in columns]
         cells = ["-" if n == 0 else f"{mean:+.2f} ± {se:.2f}" if n > 1 else f"{mean:+.2f}" for mean, se, n in diffs]
-        if diffs[0][2]:  # objects with both ours and PBR PathTrace
+        if diffs[0][2]:  # objects with both the variant's and PBR's PathTrace
             lines.append(f"| {family} | {diffs[0][2]} | " + " | ".join(cells) + " |")
     return lines if len(lines) > 2 else []
 
@@ -481,6 +526,11 @@ def difference_rows(res: Results) -> list[DifferenceRow]:
           for rnd, lmrm, label in (("t2d_triplane", "t2e_triplane_lmrm", "triplane"), ("t2a_uv", "t2b_uv_lmrm", "UV"))],
         (f"oracle - ours, {LABELS[pc]}", "t3d_oracle", "t3c_unc", pc, "", (-1.0, 1.0)),
         ("ours: PathTrace clean - Relight clean", "ours", "ours", pc, "psnr_relight_clean", (2.0,)),
+        # the extraction's default (table "default") and issue 14's thresholds
+        ("the default - PBR, PathTrace clean", DEFAULT_VARIANT, "pbr", pc, "", (3.0,)),
+        ("the default - PBR, Relight clean", DEFAULT_VARIANT, "pbr", "psnr_relight_clean", "", (2.0,)),
+        ("the default - PBR, BaseColor", DEFAULT_VARIANT, "pbr", bc, "", ()),
+        ("the default - PBR with its head tuned, PathTrace clean", DEFAULT_VARIANT, "pbr_tuned_0001", pc, "", ()),
     ]  # fmt: skip
     return [DifferenceRow(label, list(paired_values(res, a, b, m, mb).values()), thr)
             for label, a, b, m, mb, thr in spec]
@@ -495,7 +545,8 @@ def _git_commit() -> str:
 
 
 HEADLINE = (("ours", "pbr"), ("ours_pbr_start_no_reg", "pbr"), ("ours_pbr_start", "pbr"), ("t3b_no_reg", "pbr"),
-            (TRUTH, "pbr"))  # fmt: skip
+            (TRUTH, "pbr"), (DEFAULT_VARIANT, "pbr"), (DEFAULT_VARIANT, "pbr_tuned_0001"),
+            (TRUTH, DEFAULT_VARIANT))  # fmt: skip
 HEADLINE_METRICS = ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_relight", "psnr_relight_clean", "psnr_basecolor",
                     "psnr_latents")  # fmt: skip
 
@@ -525,7 +576,8 @@ def append_record(cfg: EvalConfig, objects: list[str], canon: dict[str, str], pa
 
 def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
     """One row per figure object: reference photo, ours, PBR baseline renders; true, ours and PBR base colour;
-    true and ours latents (channels 0-2); LMRM uncertainty (mean predicted std of the base colour). PNG."""
+    true and ours latents (channels 0-2); LMRM uncertainty (mean predicted std of the base colour); beside each
+    "ours" the extraction's default's picture where every row has it. PNG."""
     import torch
 
     from neumatex_core.capture import load_capture
@@ -537,11 +589,12 @@ def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
 
     out, data = Path(cfg.out), Path(cfg.data)
     tiles: list[np.ndarray] = []
-    rows = 0
-    for obj in objects:
+    shown = [o for o in objects if all((out / "figures" / o / v / "render.png").is_file() for v in FIGURE_VARIANTS)]
+    # the extraction's default gets its own columns where every shown object has its pictures
+    default = bool(shown) and all((out / "figures" / o / DEFAULT_VARIANT / "render.png").is_file() for o in shown)
+    extra = [DEFAULT_VARIANT] if default else []
+    for obj in shown:
         figs = out / "figures" / obj
-        if not all((figs / v / "render.png").is_file() for v in FIGURE_VARIANTS):
-            continue
         transforms = json.loads((data / obj / "transforms.json").read_text())
         frame = transforms["frames"][0]
         mask = read_image(data / obj / frame["mask_path"])[:, :, 0] > 0.5
@@ -565,22 +618,27 @@ def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
         sigma = torch.exp(0.5 * log_var[:, :3]).mean(-1).numpy()
         std[sel.numpy()] = 1.0 - np.clip(sigma / 0.25, 0, 1)  # dark = uncertain (0.25 std in rho_d is black)
         unc = np.repeat(std.reshape(size, size, 1), 3, axis=2)
+
+        def pictures(kind: str, figs: Path = figs) -> list[tuple[np.ndarray, str]]:
+            """ours' (and the default's) `kind`.png of this object"""
+            return [(read_image(figs / v / f"{kind}.png")[:, :, :3], "the default" if v == DEFAULT_VARIANT else "ours")
+                    for v in ("ours", *extra)]  # fmt: skip
+
         pics = [
             (white(photo), f"{obj[-3:]} reference"),
-            (read_image(figs / "ours" / "render.png")[:, :, :3], "ours"),
+            *pictures("render"),
             (read_image(figs / "pbr" / "render.png")[:, :, :3], "PBR baseline"),
             (white(srgb_oetf_numpy(np.clip(truth_rho, 0, 1))), "base colour: truth"),
-            (read_image(figs / "ours" / "basecolor.png")[:, :, :3], "ours"),
+            *pictures("basecolor"),
             (read_image(figs / "pbr" / "basecolor.png")[:, :, :3], "PBR baseline"),
             (white(np.clip((truth_lat + 1) / 2, 0, 1)), "latents 0-2: truth"),
-            (read_image(figs / "ours" / "latent.png")[:, :, :3], "ours"),
+            *pictures("latent"),
             (unc, "LMRM uncertainty"),
         ]
         tiles += [_tile(p, c, size) for p, c in pics]
-        rows += 1
-    if not rows:
+    if not shown:
         return False
-    write_image(target, sheet(tiles, columns=9))
+    write_image(target, sheet(tiles, columns=9 + 3 * len(extra)))
     return True
 
 
@@ -628,11 +686,23 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         lines += ["### Table 1 by material family", "",
                   "Paired differences (mean ± standard error, dB) over the objects with a region of that family; an "
                   "object with two families counts in both rows.", "", *by_family, ""]
-    lines += ["## Do the paper's orderings hold?", ""]
-    for claim, ok, detail in orderings(res):
-        verdict = "not measured" if ok is None else ("holds" if ok else "**does not hold**")
-        lines.append(f"- {claim}: {verdict} ({detail})")
-    lines.append("")
+    default_family = family_lines(res, object_families(Path(cfg.data), finished), DEFAULT_VARIANT, "the default") \
+        if "default" in tables else []  # fmt: skip
+    if default_family:
+        lines += ["### The extraction's default by material family", "",
+                  "The same paired differences for the extraction's default.", "", *default_family, ""]
+    if any(t in tables for t in ("table1", "table2", "table3")):
+        lines += ["## Do the paper's orderings hold?", ""]
+        for claim, ok, detail in orderings(res):
+            verdict = "not measured" if ok is None else ("holds" if ok else "**does not hold**")
+            lines.append(f"- {claim}: {verdict} ({detail})")
+        lines.append("")
+    if "default" in tables:
+        lines += ["## Issue 14's targets (the extraction's default)", ""]
+        for target, ok, detail in targets(res):
+            verdict = "not measured" if ok is None else ("met" if ok else "**not met**")
+            lines.append(f"- {target}: {verdict} ({detail})")
+        lines.append("")
     chart, diff_rows = doc.parent / "results" / "differences.png", [r for r in difference_rows(res) if r.values]
     if diff_rows:
         difference_chart(diff_rows, chart)
@@ -645,8 +715,9 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     grid = doc.parent / "results" / "grid.png"
     if figure_grid(cfg, objects, grid):
         rel = os.path.relpath(grid, doc.parent)
-        lines += ["## Figures", "", "Per row, one object (preset view 0): reference photo, ours, PBR baseline; base "
-                  "colour truth / ours / PBR; latents 0-2 truth / ours; the LMRM's uncertainty (dark: uncertain).",
+        lines += ["## Figures", "", "Per row, one object (preset view 0): reference photo, ours (and the default, "
+                  "where it was run), PBR baseline; base colour truth / ours / PBR; latents 0-2 truth / ours; the "
+                  "LMRM's uncertainty (dark: uncertain).",
                   "", f"![results grid]({rel})", ""]
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text("\n".join(lines))

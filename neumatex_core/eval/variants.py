@@ -4,6 +4,8 @@ Table 1 (PBR vs neural material): "pbr" (NVDiffRecMC++: PBR head, LMRM init, no 
 Table 2 (design choices): (a)-(c) UV textures, (d)-(f) triplane; x LMRM init x uncertainty regulariser.
 Table 3 (TTO regularisation): (a) no TTO (the LMRM's prediction itself: steps = 0), (b) no regulariser,
 (c) predicted uncertainty (ours), (d) oracle uncertainty.
+Default (issue 14, not in the paper): the extraction's default (`DEFAULT_VARIANT`: what `neumatex extract` runs,
+unlike the paper's recipe "ours") against the PBR baseline, with its head frozen and fine-tuned.
 Starts (issue 14, not in the paper): the neural TTO from the LMRM (with and without the anchor) against the neural
 TTO from the PBR baseline's solution ("ours_pbr_start", init="pbr", tto/pbr_start.py), with and without the anchor.
 Basis (issue 14, not in the paper): the neural TTO from the PBR solution in the default basis against the same in
@@ -203,8 +205,15 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_1400": {"field": "triplane", "init": "lmrm", "reg": "none", "material": "pbr", "steps": 1400},
 }
 
+# The variant that is the extraction's default (pipeline.NEURAL_FROM_PBR and TTOConfig; a test asserts it): the
+# product's row of `neumatex eval` (table "default") and of issue 14's targets. A fixed config under a fixed name, so
+# stored results never change meaning; when the default changes, its new variant is added and named here.
+DEFAULT_VARIANT = "pbr_start_default_f025"
+
 TABLES: dict[str, list[str]] = {
     "table1": ["pbr", "ours"],
+    # the extraction's default against the PBR baseline, frozen head and head fine-tuned like the default's PBR phase
+    "default": ["pbr", "pbr_tuned_0001", DEFAULT_VARIANT],
     "table2": ["t2a_uv", "t2b_uv_lmrm", "t2c_uv_lmrm_unc", "t2d_triplane", "t2e_triplane_lmrm",
                "t2f_triplane_lmrm_unc"],
     "table3": ["t3a_no_tto", "t3b_no_reg", "t3c_unc", "t3d_oracle"],
