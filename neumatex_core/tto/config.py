@@ -172,8 +172,8 @@ class TTOConfig:
     # (the TTO with the chosen config then runs all of them on every photo). At 0.5 the choice matched the
     # full-length one on all 8 Cycles captures and 6 benchmark objects, so the results were bit for bit the same, in
     # 1200 steps instead of 1600 (the demo's TTO 129 s instead of 153 s; docs/design-notes.md item 37). At 0.25
-    # (since 2026-11-29) the results were the same bit for bit as at 0.5 on 4 Cycles coats and sheens and on 9 of 11
-    # benchmark objects (over the 11: PathTrace -0.02 +- 0.12, relit +0.06 +- 0.04 dB), 200 candidate steps fewer
+    # (since 2026-11-29) the results were the same bit for bit as at 0.5 on 4 Cycles coats and sheens and on 14 of
+    # 16 benchmark objects (over the 16: PathTrace -0.01 +- 0.08, relit +0.04 +- 0.03 dB), 200 candidate steps fewer
     # (docs/design-notes.md item 47)
     select_fraction: float = 0.25
     # select_anchor / select_uniform: the TTO with the chosen config starts its neural phase on every photo from the
