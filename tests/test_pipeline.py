@@ -244,6 +244,21 @@ def test_evaluate_variant_scores_a_synthetic_object(tmp_path, tiny_lmrm):
         evaluate_variant(EXAMPLE, work, "nope", cfg)
 
 
+def test_a_pbr_result_is_scored_on_its_lambertian_base_colour():
+    """The truth's BaseColor is rho_d, black under a metal; a PBR point's base colour is F0 where metallic is 1, so
+    PBR is scored on its rho_d in the layered model (pbr_to_neural), not on its base colour."""
+    from neumatex_core.eval.harness import pbr_base_colour
+    from neumatex_core.materials.neural_basis import load_basis
+
+    gold, plastic = [0.9, 0.7, 0.3, 0.3, 1.0], [0.6, 0.3, 0.2, 0.5, 0.0]  # base rgb, roughness, metallic
+    out = pbr_base_colour(torch.tensor([gold, plastic]), load_basis())
+    assert out.shape == (2, 9) and torch.isnan(out[:, 3:]).all()
+    assert out[0, :3].abs().max() < 1e-6  # a metal has no Lambertian base
+    # a dielectric's base colour, raised by the specular layer's transmission (0.9-1): the same hue
+    ratio = out[1, :3] / torch.tensor([0.6, 0.3, 0.2])
+    assert ratio.min() >= 1.0 and ratio.max() <= 1.12 and ratio.max() - ratio.min() < 1e-3
+
+
 def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, tiny_lmrm):
     from neumatex_core.eval.suite import EvalConfig, distinct_variants, run_eval
 

@@ -7,7 +7,8 @@ The shared stages (validate, prepare_views, lmrm) run once per object through `p
 each variant's TTO runs from the stored prediction (`variant_config` on the config's TTO preset) and is scored:
 PSNR_BaseColor and PSNR_Latents against the ground-truth G-buffers of the preset views, PSNR_PathTrace of the
 orbital views (tonemapped, covered pixels, against the stored photos: the same sample count on both sides and a
-fixed seed), and the TTO's minutes (wall and CPU).
+fixed seed), and the TTO's minutes (wall and CPU). A PBR result's BaseColor is its Lambertian base colour rho_d, the
+truth's quantity (`pbr_base_colour`: black under a metal, not the metal's F0).
 
 When the object has references (`eval/references.py`, `neumatex references`), every variant also gets
 psnr_pathtrace_clean / psnr_relight_clean: the variant rendered twice per view with independent seeds
@@ -37,7 +38,8 @@ from neumatex_core.geometry.camera import PRESET_ORBIT_VIEWS
 from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.lmrm.inference import LMRMPrediction
 from neumatex_core.materials.field import MaterialField
-from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.materials.neural_basis import NeuralBasis, load_basis
+from neumatex_core.materials.pbr_to_neural import pbr_to_neural
 from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
@@ -62,14 +64,25 @@ def _render_psnr(object_dir: Path, field: MaterialField, views: Sequence[int], s
     return float(sum(scores) / len(scores))
 
 
-def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: GroundTruth, uv_mesh: Any) -> Any:
-    """points -> [N, 9] for the G-buffer metrics (PBR: base colour and NaN latents)."""
+def pbr_base_colour(values: torch.Tensor, basis: NeuralBasis) -> torch.Tensor:
+    """[N, 9]: the Lambertian base colour rho_d of PBR points (`values` [N, 5]: base colour, roughness, metallic) and
+    NaN latents. The truth's G-buffer holds rho_d, the colour under the layers (near black under a metal), while a
+    PBR base colour is the specular colour F0 where metallic is 1; so a PBR point is scored on its rho_d in the
+    layered model (materials/pbr_to_neural.py: b (1 - m) over the specular layer's transmission), as the neural
+    TTO's start reads it."""
+    rho_d, _ = pbr_to_neural(basis, values[:, :3], values[:, 3], values[:, 4])
+    return torch.cat([rho_d, torch.full((values.shape[0], 6), math.nan, device=values.device)], -1)
+
+
+def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: GroundTruth, uv_mesh: Any,
+                basis: NeuralBasis) -> Any:
+    """points -> [N, 9] for the G-buffer metrics (PBR: `pbr_base_colour`)."""
     if params is None:
         return lambda p: torch.cat(pred.material_decoder(pred.triplane.features(p)), dim=-1)
     if isinstance(params, NeuralTriplane):
         return lambda p: params.gbuffer(p, None)
     if isinstance(params, PBRTriplane):
-        return lambda p: torch.cat([params.gbuffer(p, None)[:, :3], torch.full((p.shape[0], 6), math.nan)], -1)
+        return lambda p: pbr_base_colour(params.gbuffer(p, None), basis)
     # UV fields: read the texture at the uv of the nearest point of the unwrapped mesh's vertices' triangles.
 
     pool, pool_uv = uv_mesh.sample_surface(1 << 16, seed=1)
@@ -78,9 +91,7 @@ def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: Ground
     def uv_values(p: torch.Tensor) -> torch.Tensor:
         nearest = torch.cat([torch.cdist(p[s:s + 4096], pool).argmin(1) for s in range(0, p.shape[0], 4096)])
         values = params.gbuffer(p, pool_uv[nearest])
-        if values.shape[-1] == 5:
-            values = torch.cat([values[:, :3], torch.full((p.shape[0], 6), math.nan)], -1)
-        return values
+        return pbr_base_colour(values, basis) if values.shape[-1] == 5 else values
 
     return uv_values
 
@@ -138,7 +149,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     from neumatex_core.fields.neural_field import TriplaneMaterialField
 
     field = params.field() if params is not None else TriplaneMaterialField(pred.triplane, pred.material_decoder, basis)
-    gfn = _gbuffer_fn(params, pred, gt, scene_mesh)
+    gfn = _gbuffer_fn(params, pred, gt, scene_mesh, basis)
     scores = gbuffer_psnr(gfn, gt)
     result_basis = getattr(field, "basis", None)
     if result_basis is not None and result_basis.basis_id != basis.basis_id:
