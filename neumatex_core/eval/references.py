@@ -316,8 +316,12 @@ def clean_psnr(halves_a: Any, halves_b: Any, ref_a: Any, ref_b: Any, mask: Any, 
     E[(T(A1) - T(A2))^2] / 4 whatever T does, so E[MSE_clean] = (E[T(A1)] - E[T(R1)])^2, no linearity assumed:
     exactly 0 for the same material at the same spp (measured -0.05e-4 +- 0.5e-4 at 8 + 8) and within noise of
     the truth for the two materials above (-0.6e-4 +- 0.6e-4 at 8 + 8). With fewer samples on A than on R the
-    Jensen lags no longer cancel and it is the worse of the two (+4.5e-4 at 8 against 32, +0.8e-4 +- 0.3e-4 at 32
-    against 128). Hence `clean_score`'s "auto": display at equal spp_half, radiance otherwise.
+    Jensen lags no longer cancel: on that smooth sphere display is the worse of the two (+4.5e-4 at 8 against 32,
+    +0.8e-4 +- 0.3e-4 at 32 against 128). But radiance's variance term assumes T linear at the noise scale, which
+    heavy-tailed path noise (a metal's highlights, fireflies) and the clip break: the ground truth of benchmark
+    object 1 (metal and scattering) against its own references at 32 against 128 spp, 5 views, MSE 4.9e-4 (33.1
+    dB) in radiance, 0.9e-4 (40.3 dB) in display (4.4e-6 at 128 against 128); four other objects' 0.4e-6 to
+    2.4e-5, display never the worse (docs/design-notes.md item 48). Hence `clean_score` averages in display.
 
     raw_psnr: the uncorrected PSNR of T(A) against T(R). The estimate can come out <= 0 when A and R agree to
     within the noise; it is then floored (`floored`) and the PSNR reads 100 dB."""
@@ -355,13 +359,12 @@ def coverage_mask(cap: Any, mesh: Mesh, view: int) -> np.ndarray:
 
 def clean_score(object_dir: str | Path, field: MaterialField, mesh: Mesh, lighting_names: Sequence[str],
                 views: Sequence[int], spp_half: int, seed: int, refs: References | None = None,
-                average: Literal["auto", "radiance", "display"] = "auto") -> CleanScore:
+                average: Literal["radiance", "display"] = "display") -> CleanScore:
     """`clean_psnr` of `field` (on `mesh`, e.g. a UV-unwrapped copy of the object's) against the object's
     references, pooled over the covered pixels of `views` under every lighting of `lighting_names`. The field is
     rendered twice per view with `spp_half` samples and seeds half_seed(seed, CLEAN_TAG, lighting, view, half), at
-    the references' bounce count; the mask comes from the object's own mesh. average "auto": "display" when
-    spp_half is the references' (exact there), else "radiance" (the less biased with fewer samples than the
-    references; see `clean_psnr`)."""
+    the references' bounce count; the mask comes from the object's own mesh. average: see `clean_psnr` ("display":
+    exact at the references' spp_half, and with fewer samples the more robust of the two)."""
     object_dir = Path(object_dir)
     refs = refs or load_references(object_dir)
     names = dict(lightings(object_dir))
@@ -389,8 +392,6 @@ def clean_score(object_dir: str | Path, field: MaterialField, mesh: Mesh, lighti
     if tonemap is None:
         raise ValueError("clean_score: no lighting to score")
     s = {k: np.stack(v) for k, v in parts.items()}
-    if average == "auto":
-        average = "display" if spp_half == refs.spp_half else "radiance"
     return clean_psnr(s["a1"], s["a2"], s["r1"], s["r2"], s["m"], tonemap, average)
 
 
