@@ -22,7 +22,8 @@ for mesh in $meshes; do
       folder=$out$([ "$seed" = 0 ] || echo .seed1)
       if [ ! -f "$folder/cycles.json" ]; then
         .venv/bin/neumatex cycles-capture --mesh "$mesh.obj" --envmap courtyard.exr --envmap-yaw 30 \
-          --preset "$preset" --resolution 64 --spp 256 --random 8 --seed "$seed" --pose-seed 0 --out "$folder"
+          --preset "$preset" --resolution 64 --spp 256 --random 8 --seed "$seed" --pose-seed 0 --out "$folder" \
+          --threads "${THREADS:-2}"
       fi
     done
     captures+=("$out")

@@ -248,6 +248,9 @@ def test_pbr_fit_recovers_pbr_materials():
     params, loss = fit_targets(pbr_targets(truth), pbr_albedo(truth))
     assert float(loss.max()) < 2e-3  # log-space RMS under 5% over the direction pairs and albedos
     assert torch.allclose(params[:, 3], truth[:, 3], atol=0.05) and torch.equal(params[:, 4].round(), truth[:, 4])
+    with torch.no_grad():  # the caller's grad mode changes nothing (a ground truth's G-buffers are read under it)
+        again, _ = fit_targets(pbr_targets(truth), pbr_albedo(truth))
+    assert torch.equal(again, params)
 
 
 def test_pbr_fit_grid_search_is_the_same_in_any_chunk(basis):

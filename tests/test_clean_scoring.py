@@ -381,6 +381,7 @@ def test_results_page_scores_the_extraction_default_against_issue_14s_targets(tm
 
     cfg = EvalConfig(data=str(data), out=str(out), tables="default", figures=0, progress=False)
     page = write_results(cfg, objects, ["default"], canon, tmp_path / "page.md").read_text()
+    assert page.startswith("# Results: the extraction's default on our benchmark\n")  # not the paper's tables
     assert "## The extraction's default against the PBR baseline (issue 14)" in page
     assert "| **Ours, the extraction's default** (" in page and "| 2 | 24.00 ± 0.00 | 34.00 ± 1.40 | 22.00 ± 1.00 |" \
         in page  # fmt: skip

@@ -274,11 +274,12 @@ def fit_targets(target: torch.Tensor, albedo: torch.Tensor | None = None,
         rough = ROUGH_MIN + (1 - ROUGH_MIN) * torch.sigmoid(pb)
         return torch.cat([torch.sigmoid(pa), rough.unsqueeze(-1), torch.sigmoid(pc).unsqueeze(-1)], dim=-1)
 
-    for _ in range(cfg.steps):
-        loss = _total_loss(params(), wi, wo, log_target, log_albedo)
-        opt.zero_grad()
-        loss.sum().backward()
-        opt.step()
+    with torch.enable_grad():  # a fit, whatever the caller's grad mode (e.g. a G-buffer written under no_grad)
+        for _ in range(cfg.steps):
+            loss = _total_loss(params(), wi, wo, log_target, log_albedo)
+            opt.zero_grad()
+            loss.sum().backward()
+            opt.step()
     with torch.no_grad():
         refined = quantize_pbr(params())
         refined_loss = _total_loss(refined, wi, wo, log_target, log_albedo)

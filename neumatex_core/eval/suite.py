@@ -34,7 +34,7 @@ from neumatex_core.atomic import write_json_atomic
 from neumatex_core.config import command_line, option
 from neumatex_core.eval.harness import TRUTH
 from neumatex_core.eval.plots import DifferenceRow, difference_chart
-from neumatex_core.eval.variants import DEFAULT_VARIANT, TABLES, VARIANTS
+from neumatex_core.eval.variants import DEFAULT_VARIANT, PAPER_TABLES, TABLES, VARIANTS
 
 METRICS = ("psnr_pathtrace", "psnr_basecolor", "psnr_latents", "psnr_relight", "tto_minutes", "psnr_pathtrace_clean",
            "psnr_relight_clean")
@@ -648,8 +648,12 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     res = load_results(out, finished, canon)
     n_done = {name: len(rows["psnr_pathtrace"]) for name, rows in res.items()}
     command = command_line("neumatex eval", cfg, skip=("progress", "report_only", "allow_incomplete"))
+    subjects = [s for s, shown in (("the paper's tables", any(t in PAPER_TABLES for t in tables)),
+                                   ("the extraction's default", "default" in tables),
+                                   ("issue 14's studies", any(t not in (*PAPER_TABLES, "default") for t in tables)))
+                if shown]  # fmt: skip
     lines = [
-        "# Results: the paper's tables on our benchmark",
+        f"# Results: {' and '.join(subjects)} on our benchmark",
         "",
         f"Written by `neumatex eval` ({time.strftime('%Y-%m-%d')}, commit `{_git_commit()}`, "
         f"{os.cpu_count()} CPU threads visible, preset `{cfg.preset}`"
@@ -689,7 +693,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     if default_family:
         lines += ["### The extraction's default by material family", "",
                   "The same paired differences for the extraction's default.", "", *default_family, ""]
-    if any(t in tables for t in ("table1", "table2", "table3")):
+    if any(t in PAPER_TABLES for t in tables):
         lines += ["## Do the paper's orderings hold?", ""]
         for claim, ok, detail in orderings(res):
             verdict = "not measured" if ok is None else ("holds" if ok else "**does not hold**")
