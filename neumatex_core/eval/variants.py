@@ -155,6 +155,12 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # same choices its result is the same bit for bit, and it saves 2 x 100 candidate steps (the extraction's
     # default since 2026-11-29, design note 47)
     "pbr_start_default_f025": EXTRACTION_DEFAULT,
+    # the default with the photos' own sample count (256 pixels x 32 spp: E[T(render)] then has the photos' tonemap
+    # bias) and its learning rate decayed to a tenth of the default's end; then also its neural phase at a tenth of
+    # the rate. Why: started from the ground truth, the default's TTO ends 17 dB below it (design note 49)
+    "pbr_start_default_spp32_lrf001": {**EXTRACTION_DEFAULT, "spp": 32, "pixels": 256, "lr_final": 0.01},
+    "pbr_start_default_spp32_lrf001_n01": {**EXTRACTION_DEFAULT, "spp": 32, "pixels": 256, "lr_final": 0.01,
+                                           "neural_lr_scale": 0.1},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)

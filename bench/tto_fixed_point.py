@@ -1,0 +1,129 @@
+"""Does the TTO keep the right answer? The neural TTO started from the ground truth itself, scored clean.
+
+    NEUMATEX_SHARED=../shared .venv/bin/python bench/tto_fixed_point.py [--objects test-000000]
+        [--set lr=0.02 --set spp=32 --set pixels=256] [--threads 1]
+
+Per benchmark object with references (`neumatex references`): the object's exact ground-truth material
+(`eval.references.truth_field`) is distilled into a triplane of the LMRM's size and a material decoder
+(`fields.fit.fit_triplane`, 2000 Adam steps on 200k surface points, no photos): the reference, scored clean on the 17
+orbital views and relight views 0, 8, 16 (`eval.references.clean_metrics`, the harness's scoring). Then the
+extraction's neural TTO (the cpu preset's steps, learning rate, samples, decoder fine-tuning) runs from that
+triplane on the object's photos, with nothing that holds it there (init "lmrm" on the distilled triplane, no
+regulariser, no consistency term, no choice of candidates or basis), and its result is scored the same way. A TTO
+whose objective has its minimum at the truth and whose steps are quiet enough keeps it; what it loses is the
+ceiling its noise and bias put on any start (docs/design-notes.md, note 49). `--set KEY=VALUE` changes a
+`TTOConfig` field of that TTO (repeatable). Prints both scores and the loss (after - before, dB) and appends a JSON
+line to bench/results/tto_fixed_point.jsonl. Needs the LMRM's other heads only for the prediction's structure: it
+runs the pipeline's validate / prepare_views / lmrm stages into --work (resumable).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import argument_parser, prepared_capture, write_result  # noqa: E402
+
+from neumatex_core.eval.references import clean_metrics, harness_envmap, truth_field  # noqa: E402
+from neumatex_core.fields.fit import fit_triplane  # noqa: E402
+from neumatex_core.lmrm.inference import LMRMPrediction  # noqa: E402
+from neumatex_core.materials.field import MaterialField  # noqa: E402
+from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
+from neumatex_core.pipeline import ExtractConfig  # noqa: E402
+from neumatex_core.tto.config import TTOConfig  # noqa: E402
+from neumatex_core.tto.pbr_start import solve  # noqa: E402
+
+RENDER_VIEWS = tuple(range(17))
+RELIGHT_VIEWS = (0, 8, 16)
+SPP_HALF = 32  # the harness's clean_spp_half
+FIT_POINTS, FIT_STEPS = 200_000, 2000
+
+
+def parse_overrides(pairs: list[str]) -> dict[str, Any]:
+    """KEY=VALUE strings -> TTOConfig field values of the field's type."""
+    types = {f.name: type(getattr(TTOConfig(), f.name)) for f in fields(TTOConfig)}
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        if key not in types:
+            raise SystemExit(f"--set {pair}: TTOConfig has no field {key!r}")
+        kind = types[key]
+        out[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+    return out
+
+
+def fixed_point_config(overrides: dict[str, Any]) -> TTOConfig:
+    """The extraction's TTO started from the given triplane and free to leave it (then `overrides`)."""
+    base = ExtractConfig.preset("cpu").tto_config()
+    free = {"init": "lmrm", "reg": "none", "lambda_consistency": 0.0, "select_uniform": False, "select_anchor": False,
+            "alternative_basis": ""}  # fmt: skip
+    return replace(base, **{**free, **overrides})
+
+
+def scores(object_dir: Path, field: MaterialField, mesh: Any) -> dict[str, float]:
+    m = clean_metrics(object_dir, field, mesh, RENDER_VIEWS, RELIGHT_VIEWS, SPP_HALF, seed=0)
+    return {k: m[k] for k in ("psnr_pathtrace_clean", "psnr_relight_clean") if k in m}
+
+
+def base_colour_psnr(field: Any, truth: Any, mesh: Any) -> float:
+    """BaseColor PSNR (dB) of `field` against the truth at 50k area-uniform surface points."""
+    points, tri = mesh.sample_surface(50_000, seed=2)
+    want = truth.gbuffer(points, tri)["base_color"]
+    with torch.no_grad():
+        rho, _ = field.gbuffer(points)
+    return float(-10 * torch.log10(((rho.clamp(0, 1) - want) ** 2).mean()))
+
+
+def bench_object(object_dir: Path, work: Path, tto: TTOConfig) -> dict[str, Any]:
+    _, pred, cap, mesh, photos = prepared_capture(object_dir, work)
+    truth = truth_field(object_dir)
+    points, tri = mesh.sample_surface(FIT_POINTS, seed=1)
+    g = truth.gbuffer(points, tri)
+    t0 = time.perf_counter()
+    start, _ = fit_triplane(points, lambda p: (g["base_color"], g["latent"]), truth.basis,
+                            channels=pred.triplane.channels, resolution=pred.triplane.resolution, steps=FIT_STEPS)
+    for module in (start.triplane, start.decoder):
+        module.requires_grad_(False)
+        module.zero_grad(set_to_none=True)
+    fit_s = time.perf_counter() - t0
+    before = {"basecolor": base_colour_psnr(start, truth, mesh), **scores(object_dir, start, mesh)}
+    prediction = LMRMPrediction(start.triplane, start.decoder, pred.uncertainty_decoder, pred.pbr_decoder)
+    t0 = time.perf_counter()
+    result = solve(tto, mesh, harness_envmap(cap), photos, cap.tonemap, prediction, load_basis(), truth=None)
+    tto_s = time.perf_counter() - t0
+    field = result.params.field()
+    after = {"basecolor": base_colour_psnr(field, truth, mesh), **scores(object_dir, field, result.mesh or mesh)}
+    loss = {k: after[k] - before[k] for k in before if k in after}
+    print(f"{object_dir.name}: truth distilled {before['psnr_pathtrace_clean']:.2f} dB PathTrace clean, "
+          f"{before.get('psnr_relight_clean', float('nan')):.2f} relit, {before['basecolor']:.2f} BaseColor; after the "
+          f"TTO {after['psnr_pathtrace_clean']:.2f} ({loss['psnr_pathtrace_clean']:+.2f}), "
+          f"{after.get('psnr_relight_clean', float('nan')):.2f} ({loss.get('psnr_relight_clean', float('nan')):+.2f}), "
+          f"{after['basecolor']:.2f} ({loss['basecolor']:+.2f}); fit {fit_s:.0f} s, TTO {tto_s:.0f} s", flush=True)
+    return {"object": object_dir.name, "before": before, "after": after, "loss_db": loss, "fit_s": round(fit_s, 1),
+            "tto_s": round(tto_s, 1)}  # fmt: skip
+
+
+def main() -> int:
+    parser = argument_parser(__doc__)
+    parser.add_argument("--data", default="data/benchmark-test", type=Path)
+    parser.add_argument("--objects", default="test-000000", help="comma-separated object ids")
+    parser.add_argument("--work", default="runs/bench-tto-fixed-point", type=Path)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a TTOConfig field")
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    overrides = parse_overrides(args.set)
+    tto = fixed_point_config(overrides)
+    rows = [bench_object(args.data / o, args.work / o, tto) for o in args.objects.split(",") if o.strip()]
+    print(f"appended to {write_result('tto_fixed_point', {'set': overrides, 'tto': tto.to_dict(), 'rows': rows})}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
