@@ -653,7 +653,8 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
                                    ("issue 14's studies", any(t not in (*PAPER_TABLES, "default") for t in tables)))
                 if shown]  # fmt: skip
     lines = [
-        f"# Results: {' and '.join(subjects)} on our benchmark",
+        f"# Results: {' and '.join([', '.join(subjects[:-1]), subjects[-1]] if len(subjects) > 2 else subjects)} "
+        "on our benchmark",
         "",
         f"Written by `neumatex eval` ({time.strftime('%Y-%m-%d')}, commit `{_git_commit()}`, "
         f"{os.cpu_count()} CPU threads visible, preset `{cfg.preset}`"
