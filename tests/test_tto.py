@@ -774,6 +774,47 @@ def test_iterate_averaging_returns_the_tails_mean_and_resumes(example, truth_pre
     assert torch.equal(second.params.tensor, whole.params.tensor)
 
 
+def test_settling_phase_traces_the_same_rays_at_more_samples_on_its_own_schedule(example, truth_prediction,
+                                                                                  monkeypatch):
+    """settle_fraction 0.5 over 8 steps: steps 0-3 draw 64 pixels x 2 spp, steps 4-7 16 x 8 (the same rays); the
+    rate falls by a cosine from lr to lr x lr_final over steps 0-3, then from lr x settle_lr over steps 4-7; Adam
+    gets the config's epsilon and betas; the PBR phase of init "pbr" neither settles nor takes them; and the cached
+    estimator, whose cache holds one sample count, is refused."""
+    from neumatex_core.tto import pbr_start
+    from neumatex_core.tto.optimise import learning_rate, make_optimizer
+
+    cfg = TTOConfig.preset("tiny", steps=8, pixels=64, spp=2, max_bounces=1, checkpoint_every=0, init="lmrm",
+                           lr=0.1, lr_final=0.1, settle_fraction=0.5, settle_spp=8, settle_lr=0.5, adam_eps=1e-3,
+                           adam_beta1=0.8)  # fmt: skip
+    cfg.check()
+    assert [cfg.batch_at(s) for s in (0, 3, 4, 7)] == [(64, 2), (64, 2), (16, 8), (16, 8)]
+    rates = [learning_rate(cfg, s) for s in range(8)]
+    assert rates[0] == pytest.approx(0.1) and rates[4] == pytest.approx(0.05)
+    assert rates[0] > rates[1] > rates[2] > rates[3] > 0.01 and rates[4] > rates[5] > rates[6] > rates[7] > 0.005
+    plain = replace(cfg, settle_fraction=0.0)
+    assert plain.batch_at(7) == (64, 2)
+    assert [learning_rate(plain, s) for s in range(8)] == pytest.approx(
+        [0.1 * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * s / 8))) for s in range(8)])
+    p = build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                      truth_prediction, example.basis)  # fmt: skip
+    adam = make_optimizer(p.params, cfg).defaults
+    assert (adam["eps"], adam["betas"]) == (1e-3, (0.8, 0.999))
+    drawn: list[tuple[int, int]] = []
+    batch = p.photos.batch
+    monkeypatch.setattr(p.photos, "batch", lambda pixels, spp, g: drawn.append((pixels, spp)) or batch(pixels, spp, g))
+    result = optimise(p, cfg)
+    assert drawn == [(64, 2)] * 4 + [(16, 8)] * 4
+    assert [row["lr"] for row in result.history] == pytest.approx(rates)
+    with pytest.raises(ValueError, match="settle_fraction"):
+        replace(cfg, estimator="cached").check()
+    phases: list[TTOConfig] = []
+    monkeypatch.setattr(pbr_start, "optimise", lambda problem, config, *a, **k: phases.append(config))
+    pbr_start._pbr_phase(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                         truth_prediction, example.basis, True, None, None, None)  # fmt: skip
+    assert (phases[0].settle_fraction, phases[0].adam_eps, phases[0].adam_beta1, phases[0].material) == (
+        0.0, 1e-8, 0.9, "pbr")
+
+
 def _pbr_scene(example: Example, prediction: LMRMPrediction, values: list[float]):
     """A PBR triplane holding one PBR material (base colour, roughness, metallic) all over the example's mesh (its
     planes fitted by Adam, the LMRM's PBR head frozen), and photos of it: 6 of the example's views rendered at 64 spp,

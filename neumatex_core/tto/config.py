@@ -56,6 +56,8 @@ RANGES: dict[str, Range] = {
     "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_fit_lr": Range(0, 100, lo_open=True),
     "pbr_fit_batch": Range(1, 1 << 24), "pbr_bsdf_fit_steps": Range(0, 100_000),
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
+    "settle_fraction": Range(0, 1), "settle_spp": Range(1, 4096), "settle_lr": Range(0, 100, lo_open=True),
+    "adam_beta1": Range(0, 0.9999), "adam_beta2": Range(0, 0.99999), "adam_eps": Range(0, 1),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
     "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100),
     "select_fraction": Range(0, 1, lo_open=True), "basis_margin_db": Range(-100, 100),
@@ -127,6 +129,20 @@ class TTOConfig:
     # the result is the mean of the field's tensor over this last fraction of the steps (0: the last iterate;
     # tto/optimise.py `IterateAverage`)
     average_tail: float = 0.0
+    # the last settle_fraction of the steps settle: each traces the same rays as before at settle_spp samples per
+    # pixel (pixels x spp / settle_spp pixels), and the learning rate starts a second cosine from lr x settle_lr
+    # down to lr x settle_lr x lr_final. Measured (docs/design-notes.md, item 50): from the ground truth, half the
+    # steps settling keep 34.6 of its 50.0 dB (the default 33.4); from the PBR start, objects 0 and 2, PathTrace
+    # -0.07 +- 0.60 dB against the default. Not the default.
+    settle_fraction: float = 0.0
+    settle_spp: int = 32
+    settle_lr: float = 0.1
+    # Adam's moment decay rates and epsilon (torch's defaults). A large epsilon makes the steps of parameters whose
+    # gradient is mostly noise small: from the truth 1e-3 keeps 37.3 dB, 1e-2 41.4, but from the PBR start the
+    # neural phase then hardly moves (1e-3: PathTrace -1.33 +- 0.23 dB against the default; item 50)
+    adam_beta1: float = 0.9
+    adam_beta2: float = 0.999
+    adam_eps: float = 1e-8
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # init "pbr" with train_decoder: whether the neural phase fine-tunes its decoder where it runs in a basis other
@@ -235,9 +251,12 @@ class TTOConfig:
         if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
             raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
                              f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")
-        if self.photo_loss != "l2" and self.spp < 2:
+        if self.settle_fraction > 0 and self.estimator == "cached":
+            raise ValueError("TTO settle_fraction changes the samples per pixel of the traced batches: it needs "
+                             f"estimator 'path', got {self.estimator!r}")
+        if self.photo_loss != "l2" and min(self.spp, self.settle_spp if self.settle_fraction > 0 else 2) < 2:
             raise ValueError(f"TTO photo_loss={self.photo_loss!r} pairs each pixel's samples: it needs spp >= 2, "
-                             f"got {self.spp}")
+                             f"got {self.spp} (settle_spp {self.settle_spp})")
         if self.select_anchor and (self.reg != "start" or self.init != "pbr" or self.lambda_reg <= 0):
             raise ValueError("TTO select_anchor chooses between the anchor to the PBR start and none: it needs init "
                              f"'pbr', reg 'start' and lambda_reg > 0, got {self.init!r}, {self.reg!r}, "
@@ -259,6 +278,16 @@ class TTOConfig:
             raise ValueError(f"TTO basis={self.basis!r}: the LMRM's latents are in the default basis, so another basis "
                              f"needs init 'pbr' or 'random' and reg 'none' or 'start', got init {self.init!r}, "
                              f"reg {self.reg!r}")
+
+    def settle_start(self) -> int:
+        """The first step (0-based) of the settling phase; `steps` when there is none."""
+        return self.steps - round(self.settle_fraction * self.steps)
+
+    def batch_at(self, step: int) -> tuple[int, int]:
+        """(pixels, samples per pixel) of step `step`'s photo batch."""
+        if step < self.settle_start():
+            return self.pixels, self.spp
+        return max(1, self.pixels * self.spp // self.settle_spp), self.settle_spp
 
     def total_steps(self) -> int:
         """Adam steps of the whole TTO: with init "pbr", the PBR phase's and then the neural phase's."""

@@ -233,7 +233,7 @@ def make_optimizer(params: Parametrisation, config: TTOConfig,
         groups.append({"params": params.decoder_parameters(), "lr_scale": config.decoder_lr})
     if exposure is not None:
         groups.append({"params": [exposure.log_scale], "lr_scale": config.exposure_lr / config.lr})
-    return torch.optim.Adam(groups, lr=config.lr)
+    return torch.optim.Adam(groups, lr=config.lr, betas=(config.adam_beta1, config.adam_beta2), eps=config.adam_eps)
 
 
 class IterateAverage:
@@ -256,9 +256,14 @@ class IterateAverage:
 
 
 def learning_rate(config: TTOConfig, step: int) -> float:
-    """Cosine decay from lr to lr * lr_final over the steps."""
-    t = min(step / max(config.steps, 1), 1.0)
-    return config.lr * (config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t)))
+    """Cosine decay from lr to lr * lr_final over the steps; with settle_fraction, over the steps before the settling
+    phase, which has its own cosine from lr * settle_lr to lr * settle_lr * lr_final."""
+    start = config.settle_start()
+    if step < start:
+        t, top = step / max(start, 1), config.lr
+    else:
+        t, top = min((step - start) / max(config.steps - start, 1), 1.0), config.lr * config.settle_lr
+    return top * (config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
 def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.Generator:
@@ -380,10 +385,11 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
                 cached.build(step, params.tensor)
             photo, mse_t = cached.loss(g)
         else:
-            batch = problem.photos.batch(config.pixels, config.spp, g)
+            pixels, spp = config.batch_at(step)
+            batch = problem.photos.batch(pixels, spp, g)
             radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
             scale = problem.photo_scale(batch.frame, batch.exposure)
-            photo, mse_t = photometric_loss(radiance, batch.target, config.spp, problem.tonemap, scale,
+            photo, mse_t = photometric_loss(radiance, batch.target, spp, problem.tonemap, scale,
                                             config.photo_loss)  # fmt: skip
         loss = photo
         reg = torch.zeros((), device=problem.device)
