@@ -398,3 +398,17 @@ def test_results_page_scores_the_extraction_default_against_issue_14s_targets(tm
     mean, se, n = record["paired"][f"{DEFAULT_VARIANT} - pbr"]["psnr_pathtrace_clean"]
     assert (mean, se, n) == (pytest.approx(4.0), pytest.approx(0.4), 2)
     assert record["paired"][f"{DEFAULT_VARIANT} - pbr_tuned_0001"]["psnr_pathtrace_clean"][0] == pytest.approx(3.25)
+
+    # the default's results measured by another command with the same harness (bench/variants_clean.py's rows keep
+    # the clean metrics only): its row counts the objects it has, the page names the source, the family table keeps
+    # the clean column and the noisy ones read '-'
+    for obj, (pc, rc, bc, _) in zip(objects, scores[DEFAULT_VARIANT], strict=True):
+        rec = {"psnr_pathtrace_clean": pc, "psnr_relight_clean": rc, "psnr_basecolor": bc,
+               "source": "bench/results/variants_clean.jsonl 2026-11-29T09:59:34+00:00 (commit 8b4f59d)"}
+        (out / "results" / obj / f"{DEFAULT_VARIANT}.json").write_text(json.dumps(rec))
+    page = write_results(cfg, objects, ["default"], canon, tmp_path / "page.md").read_text()
+    assert "| **Ours, the extraction's default** (" in page and "| 2 | - | 34.00 ± 1.40 | 22.00 ± 1.00 |" in page
+    assert "on 2 objects were measured by another command with the same harness (bench/results/variants_clean.jsonl;" \
+        in page  # fmt: skip
+    assert "| fuzzy | 2 | - | +0.00 ± 0.00 | +9.50 ± 1.50 | +4.00 ± 0.40 |" in page
+    assert "- PathTrace clean: the default - PBR >= +3 dB, resolved: met (" in page

@@ -497,8 +497,9 @@ def family_lines(res: Results, families: dict[str, list[str]], variant: str = "o
                         for v, rows in res.items()}  # fmt: skip
         diffs = [paired_difference(sub, a, "pbr", m) for a, m in columns]
         cells = ["-" if n == 0 else f"{mean:+.2f} ± {se:.2f}" if n > 1 else f"{mean:+.2f}" for mean, se, n in diffs]
-        if diffs[0][2]:  # objects with both the variant's and PBR's PathTrace
-            lines.append(f"| {family} | {diffs[0][2]} | " + " | ".join(cells) + " |")
+        paired = max(diffs[0][2], diffs[-1][2])  # objects with the variant's and PBR's PathTrace (noisy or clean)
+        if paired:
+            lines.append(f"| {family} | {paired} | " + " | ".join(cells) + " |")
     return lines if len(lines) > 2 else []
 
 
@@ -646,7 +647,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     # only objects with every variant: rows of a partial page then compare the same objects
     finished = finished_objects(out, objects, set(canon.values()) | {TRUTH})
     res = load_results(out, finished, canon)
-    n_done = {name: len(rows["psnr_pathtrace"]) for name, rows in res.items()}
+    n_done = {name: len(set().union(*rows.values())) for name, rows in res.items()}  # objects with any metric
     command = command_line("neumatex eval", cfg, skip=("progress", "report_only", "allow_incomplete"))
     subjects = [s for s, shown in (("the paper's tables", any(t in PAPER_TABLES for t in tables)),
                                    ("the extraction's default", "default" in tables),
@@ -671,7 +672,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         "BaseColor / Latents: the G-buffers of the 23 preset views vs ground truth; Relight: frames "
         f"{cfg.relight_views} under the two held-out lightings vs their photos (16 spp references, so Monte Carlo "
         "noise caps it); TTO min: wall-clock minutes of the TTO alone on this machine."
-        + _clean_description(cfg, res, finished),
+        + _clean_description(cfg, res, finished) + _sources_description(out, finished, canon),
         "",
     ]
     for table in tables:
@@ -725,6 +726,20 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     doc.parent.mkdir(parents=True, exist_ok=True)
     doc.write_text("\n".join(lines))
     return doc
+
+
+def _sources_description(out: Path, objects: list[str], canon: dict[str, str]) -> str:
+    """The page's sentence on stored results that another command measured with the same harness (their "source":
+    e.g. bench/variants_clean.py's rows, which keep the clean metrics only); '' when there are none."""
+    found: dict[str, list[str]] = {}
+    for name, run in canon.items():
+        for obj in objects:
+            f = out / "results" / obj / f"{run}.json"
+            if f.is_file() and (source := json.loads(f.read_text()).get("source")):
+                found.setdefault(name, []).append(str(source))
+    return "".join(f" The results of {ROW_NAMES[name]} on {len(sources)} objects were measured by another command "
+                   f"with the same harness ({sorted(sources)[0].split()[0]}; columns it does not record are '-')."
+                   for name, sources in found.items())
 
 
 def _clean_description(cfg: EvalConfig, res: Results, objects: list[str]) -> str:
