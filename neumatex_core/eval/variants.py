@@ -177,6 +177,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # (objects 0-4 for three quarters: -0.06 +- 0.42; design note 50). Half is the extraction's default
     "pbr_start_default_settle05": EXTRACTION_DEFAULT,
     "pbr_start_default_settle075": {**DEFAULT_47, "settle_fraction": 0.75},
+    # the Cycles sheens lose 1.4-3.5 dB relit with the settling half (design note 51): the fuzz grows only at the
+    # high rate. A quarter settling at the same cost, and the old default's 400 steps at the high rate followed by 200
+    # settling (half as many steps again in the neural phase and its choice)
+    "pbr_start_default_settle025": {**DEFAULT_47, "settle_fraction": 0.25},
+    "pbr_start_default_600_settle200": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)
