@@ -218,7 +218,7 @@ def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], ru
     config = ExtractConfig.from_dict(cfg_dict)
     done = []
     for variant in runs:
-        target = Path(out) / "results" / obj / f"{variant}.json"
+        target = result_path(out, obj, variant)
         if target.is_file():
             continue
         figure_dir = Path(out) / "figures" / obj / variant if figure and variant in FIGURE_VARIANTS + FIGURE_OPTIONAL \
@@ -232,14 +232,19 @@ def _evaluate_object(data: str, obj: str, out: str, cfg_dict: dict[str, Any], ru
     return done
 
 
+def result_path(out: str | Path, obj: str, run: str) -> Path:
+    """The stored result of one (object, run) of the evaluation in `out` (JSON: metric -> value)."""
+    return Path(out) / "results" / obj / f"{run}.json"
+
+
 def _stored_pairs(out: Path, objects: list[str], runs: list[str]) -> int:
     """How many (object, run) results are stored (the progress bar's count)."""
-    return sum((out / "results" / o / f"{v}.json").is_file() for o in objects for v in runs)
+    return sum(result_path(out, o, v).is_file() for o in objects for v in runs)
 
 
 def finished_objects(out: Path, objects: list[str], runs: list[str] | set[str]) -> list[str]:
     """The objects of `objects` that have a stored result for every run in `runs`."""
-    return [o for o in objects if all((out / "results" / o / f"{v}.json").is_file() for v in runs)]
+    return [o for o in objects if all(result_path(out, o, v).is_file() for v in runs)]
 
 
 def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None = None) -> dict[str, Any]:
@@ -314,7 +319,7 @@ def load_results(out: Path, objects: list[str], canon: dict[str, str]) -> Result
     for name, run in {**canon, TRUTH: TRUTH}.items():
         rows: dict[str, dict[str, float]] = {m: {} for m in METRICS}
         for obj in objects:
-            f = out / "results" / obj / f"{run}.json"
+            f = result_path(out, obj, run)
             if f.is_file():
                 rec = json.loads(f.read_text())
                 for m in METRICS:
@@ -734,7 +739,7 @@ def _sources_description(out: Path, objects: list[str], canon: dict[str, str]) -
     found: dict[str, list[str]] = {}
     for name, run in canon.items():
         for obj in objects:
-            f = out / "results" / obj / f"{run}.json"
+            f = result_path(out, obj, run)
             if f.is_file() and (source := json.loads(f.read_text()).get("source")):
                 found.setdefault(name, []).append(str(source))
     return "".join(f" The results of {ROW_NAMES[name]} on {len(sources)} objects were measured by another command "
