@@ -424,6 +424,10 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
     assert extraction.settle_fraction == 0.5 and variant_config("pbr", extraction).settle_fraction == 0.0
     assert variant_config("pbr_start_default_f025", extraction) == replace(extraction, settle_fraction=0.0)
+    # the default with a smoothness term on its neural phase (design note 52); no other variant smooths
+    assert variant_config("pbr_start_default_smooth01", extraction) == replace(extraction, lambda_smooth=0.1)
+    assert extraction.lambda_smooth == 0.0 and variant_config("pbr", replace(extraction, lambda_smooth=1.0)) == \
+        variant_config("pbr", extraction)
     default = variant_config("pbr_start_default_alt_frozen", TTOConfig.preset("cpu"))
     assert default == replace(extraction, select_fraction=0.5, settle_fraction=0.0)
     # its choices scored with fewer samples, or on fewer pixels (tried 2026-11-28, design note 42)

@@ -7,6 +7,7 @@ G-buffers are known), one torch thread, a few seconds per test.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import replace
 
@@ -813,6 +814,98 @@ def test_settling_phase_traces_the_same_rays_at_more_samples_on_its_own_schedule
                          truth_prediction, example.basis, True, None, None, None)  # fmt: skip
     assert (phases[0].settle_fraction, phases[0].adam_eps, phases[0].adam_beta1, phases[0].material) == (
         0.0, 1e-8, 0.9, "pbr")
+
+
+def test_smoothness_term_pulls_each_texels_change_towards_its_neighbours(example, truth_prediction, monkeypatch):
+    """neighbour_variation is 0 on constant planes and 4 on a +-1 checkerboard (every neighbour differs by 2); a UV
+    texture [H, W, C] is measured over H and W, from an origin. With lambda_smooth the TTO's change to noisy planes
+    (the tensor minus its start) ends smoother than without (the same seed, so the same photo batches) while the
+    start's own texture is not smoothed away, the term is logged, and the PBR phase of init "pbr" drops it."""
+    from neumatex_core.fields.triplane import neighbour_variation
+    from neumatex_core.tto import pbr_start
+    from neumatex_core.tto.params import NeuralUV
+
+    assert float(neighbour_variation(torch.full((3, 4, 8, 8), 0.7))) == 0.0
+    i = torch.arange(8)
+    checker = ((i[:, None] + i[None, :]) % 2 * 2 - 1).float().expand(3, 4, 8, 8)
+    assert float(neighbour_variation(checker)) == pytest.approx(4.0)
+    ramp = torch.linspace(0, 1, 5)[:, None, None].expand(5, 6, 9)  # [H, W, C]: rows differ by 0.25, columns alike
+    uv = NeuralUV(ramp, example.basis)
+    assert float(uv.texel_variation(torch.zeros_like(ramp)).detach()) == pytest.approx(0.5 * 0.25**2)
+    assert float(uv.texel_variation(ramp).detach()) == 0.0
+    cfg = TTOConfig.preset("tiny", steps=8, pixels=64, spp=2, max_bounces=1, checkpoint_every=0, init="lmrm",
+                           lr=0.02)  # fmt: skip
+    noisy = perturbed(truth_prediction, 0.3)
+    start = noisy.triplane.planes.detach().clone()
+    change, texture = {}, {}
+    for weight in (0.0, 1000.0):
+        smooth_cfg = replace(cfg, lambda_smooth=weight)
+        smooth_cfg.check()
+        p = build_problem(smooth_cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, noisy,
+                          example.basis)  # fmt: skip
+        result = optimise(p, smooth_cfg)
+        change[weight] = float(neighbour_variation(result.params.tensor.detach() - start))
+        texture[weight] = float(neighbour_variation(result.params.tensor.detach()))
+        assert ("smooth" in result.history[-1]) == (weight > 0)
+    assert change[1000.0] < 0.5 * change[0.0]
+    assert texture[1000.0] > 0.9 * float(neighbour_variation(start))  # the start's texture stays
+    with pytest.raises(ValueError, match="lambda_smooth"):
+        replace(cfg, lambda_smooth=-1.0).check()
+    phases: list[TTOConfig] = []
+    monkeypatch.setattr(pbr_start, "optimise", lambda problem, config, *a, **k: phases.append(config))
+    pbr_start._pbr_phase(replace(cfg, lambda_smooth=10.0), example.mesh, example.envmap, example.photos,
+                         example.capture.tonemap, truth_prediction, example.basis, True, None, None, None)  # fmt: skip
+    assert phases[0].lambda_smooth == 0.0
+
+
+def test_uniform_adam_divides_each_tensor_by_one_normaliser(example, truth_prediction, monkeypatch):
+    """adam_normalise "tensor": the first step moves a tensor by lr x g / RMS(g) (Adam moves every element by lr),
+    so a weak gradient takes a step in proportion; resuming from its state_dict goes on bit for bit; make_optimizer
+    builds it for the neural phase and the PBR phase of init "pbr" keeps torch's Adam."""
+    from neumatex_core.tto import pbr_start
+    from neumatex_core.tto.optimise import make_optimizer
+    from neumatex_core.tto.uniform_adam import UniformAdam
+
+    grad = torch.tensor([1.0, 0.01, -0.5])
+    steps = {}
+    for kind in (torch.optim.Adam, UniformAdam):
+        x = torch.zeros(3, requires_grad=True)
+        opt = kind([x], lr=0.1)
+        x.grad = grad.clone()
+        opt.step()
+        steps[kind] = x.detach().clone()
+    assert torch.allclose(steps[torch.optim.Adam], -0.1 * grad.sign(), atol=1e-6)
+    assert torch.allclose(steps[UniformAdam], -0.1 * grad / grad.square().mean().sqrt(), atol=1e-6)
+    g = torch.Generator().manual_seed(0)
+    grads = [torch.randn(3, generator=g) for _ in range(6)]
+    x, y = torch.zeros(3, requires_grad=True), torch.zeros(3, requires_grad=True)
+    whole = UniformAdam([x], lr=0.1, betas=(0.8, 0.99))
+    for i, gr in enumerate(grads):
+        x.grad = gr.clone()
+        whole.step()
+        if i == 2:
+            saved, at = copy.deepcopy(whole.state_dict()), x.detach().clone()  # as a checkpoint holds it
+    with torch.no_grad():
+        y.copy_(at)
+    resumed = UniformAdam([y], lr=0.1, betas=(0.8, 0.99))
+    resumed.load_state_dict(saved)
+    for gr in grads[3:]:
+        y.grad = gr.clone()
+        resumed.step()
+    assert torch.equal(x.detach(), y.detach())
+    cfg = TTOConfig.preset("tiny", init="lmrm", adam_normalise="tensor")
+    cfg.check()
+    p = build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, truth_prediction,
+                      example.basis)  # fmt: skip
+    assert isinstance(make_optimizer(p.params, cfg), UniformAdam)
+    assert type(make_optimizer(p.params, replace(cfg, adam_normalise="element"))) is torch.optim.Adam
+    with pytest.raises(ValueError, match="adam_normalise"):
+        replace(cfg, adam_normalise="row").check()  # type: ignore[arg-type]
+    phases: list[TTOConfig] = []
+    monkeypatch.setattr(pbr_start, "optimise", lambda problem, config, *a, **k: phases.append(config))
+    pbr_start._pbr_phase(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
+                         truth_prediction, example.basis, True, None, None, None)  # fmt: skip
+    assert phases[0].adam_normalise == "element"
 
 
 def _pbr_scene(example: Example, prediction: LMRMPrediction, values: list[float]):

@@ -182,6 +182,14 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # settling (half as many steps again in the neural phase and its choice)
     "pbr_start_default_settle025": {**DEFAULT_47, "settle_fraction": 0.25},
     "pbr_start_default_600_settle200": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3},
+    # the default with a smoothness term on its neural phase's change to the planes (TTOConfig.lambda_smooth): a
+    # texel whose photo gradient is mostly noise is pulled towards its neighbours' change instead of walking at
+    # Adam's full step (design note 52)
+    "pbr_start_default_smooth01": {**EXTRACTION_DEFAULT, "lambda_smooth": 0.1},
+    "pbr_start_default_smooth1": {**EXTRACTION_DEFAULT, "lambda_smooth": 1.0},
+    # the default whose neural phase normalises each tensor's Adam step as a whole (tto/uniform_adam.py): a weakly
+    # reached texel's noisy gradient takes a proportionally small step, not Adam's full one (design note 52)
+    "pbr_start_default_uniform_adam": {**EXTRACTION_DEFAULT, "adam_normalise": "tensor"},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)
@@ -265,14 +273,15 @@ TABLES: dict[str, list[str]] = {
 # A variant's regulariser is its own: these fields start from TTOConfig's defaults (the paper's uncertainty anchor
 # at its weight, no consistency term, no choice on held-out photos, one basis), not from the extraction preset
 # `base`, whose regulariser follows the extraction's default (pipeline.NEURAL_FROM_PBR, and its variation) and
-# changed with it. So does the neural phase's settling (settle_fraction): no variant settles unless it says so.
+# changed with it. So do the neural phase's settling (settle_fraction) and smoothness term (lambda_smooth): no
+# variant settles or smooths unless it says so.
 # (From 2026-11-24 to 2026-11-27 the presets' lambda_reg 0.1 reached the variants that do not set their own: "ours",
 # t2c, t2f, t3c, t3d, ours_pbr_start.)
 REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_sigma", "consistency_of",
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
                       "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr",
                       "select_reuse_start", "decoder_in_other_basis", "validation_spp", "validation_stride",
-                      "settle_fraction")
+                      "settle_fraction", "lambda_smooth")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

@@ -65,3 +65,12 @@ class Triplane(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         return self.features(points)
+
+
+def neighbour_variation(planes: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference between neighbouring texels of feature maps [..., H, W] (both axes), a scalar: zero
+    for constant planes. TTO's smoothness term (TTOConfig.lambda_smooth) on a triplane's planes [3, C, R, R] or a
+    texture moved to [C, H, W]."""
+    dx = planes[..., :, 1:] - planes[..., :, :-1]
+    dy = planes[..., 1:, :] - planes[..., :-1, :]
+    return 0.5 * (dx.square().mean() + dy.square().mean())

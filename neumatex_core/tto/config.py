@@ -38,6 +38,7 @@ RegKind = Literal["uncertainty", "none", "oracle", "start"]
 ConsistencyKind = Literal["change", "value", "value_latent", "value_rho"]
 MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
+AdamNormaliseKind = Literal["element", "tensor"]
 PRESETS = ("tiny", "cpu", "gpu")
 BIG = 1 << 24
 # consistency_rho_value of the "uniform" variation (one material over the whole object): on the Cycles captures,
@@ -49,7 +50,7 @@ RANGES: dict[str, Range] = {
     "steps": Range(1, 100_000), "pixels": Range(1, 1 << 20), "spp": Range(1, 4096), "max_bounces": Range(1, 64),
     "lr": Range(0, 100, lo_open=True), "lr_final": Range(0, 1, lo_open=True), "lambda_reg": Range(0, 1e6),
     "lambda_consistency": Range(0, 1e6), "consistency_sigma": Range(0, 100, lo_open=True),
-    "consistency_rho_value": Range(0, 1e6), "consistency_latent_value": Range(0, 1e6),
+    "consistency_rho_value": Range(0, 1e6), "consistency_latent_value": Range(0, 1e6), "lambda_smooth": Range(0, 1e6),
     "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
@@ -144,6 +145,10 @@ class TTOConfig:
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     adam_eps: float = 1e-8
+    # "element": Adam (each element divided by the root of its own second moment); "tensor": one normaliser per tensor,
+    # the RMS of those roots (tto/uniform_adam.py), so a weakly reached texel's noisy gradient takes a step in
+    # proportion to its averaged size, not a full one. The neural phase's alone, like the epsilon (item 52)
+    adam_normalise: AdamNormaliseKind = "element"
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # init "pbr" with train_decoder: whether the neural phase fine-tunes its decoder where it runs in a basis other
@@ -220,6 +225,13 @@ class TTOConfig:
     # (docs/design-notes.md, item 35)
     consistency_rho_value: float = 0.0
     consistency_latent_value: float = 0.0
+    # weight of the smoothness term: the mean squared difference between neighbouring texels of the TTO's change to
+    # its tensor (`Parametrisation.texel_variation`; the tensor minus the one it started from). A texel that few
+    # photo pixels reach gets a gradient that is mostly Monte Carlo noise, and Adam moves it by about lr a step
+    # whatever that noise (docs/design-notes.md item 50); coupled to its neighbours its change is pulled towards
+    # theirs. Of the change, not the values: the start (the PBR solution's planes) is not smooth, and smoothing it
+    # away cost 5 dB (item 52). The neural phase's alone: the PBR phase (the baseline's own TTO) drops it
+    lambda_smooth: float = 0.0
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:

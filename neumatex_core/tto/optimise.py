@@ -50,6 +50,7 @@ from neumatex_core.tto.loss import (
     uncertainty_weights,
 )
 from neumatex_core.tto.params import PBRUV, NeuralTriplane, NeuralUV, Parametrisation, PBRTriplane
+from neumatex_core.tto.uniform_adam import UniformAdam
 
 Progress = Callable[[int, int, dict[str, float]], None]
 Truth = Callable[[torch.Tensor], torch.Tensor]  # points [P, 3] -> ground-truth (rho_d, latent) [P, 9]
@@ -225,15 +226,17 @@ def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
 
 
 def make_optimizer(params: Parametrisation, config: TTOConfig,
-                   exposure: ExposureFit | None = None) -> torch.optim.Adam:
+                   exposure: ExposureFit | None = None) -> torch.optim.Optimizer:
     """Adam over the field's tensor (group 0), with train_decoder its decoder (lr x decoder_lr) and with `exposure`
-    the photos' log-scales (at exposure_lr, on the same cosine schedule)."""
+    the photos' log-scales (at exposure_lr, on the same cosine schedule); with adam_normalise "tensor" the Adam that
+    normalises each tensor as a whole (tto/uniform_adam.py)."""
     groups: list[dict[str, Any]] = [{"params": [params.tensor], "lr_scale": 1.0}]
     if params.decoder_parameters():
         groups.append({"params": params.decoder_parameters(), "lr_scale": config.decoder_lr})
     if exposure is not None:
         groups.append({"params": [exposure.log_scale], "lr_scale": config.exposure_lr / config.lr})
-    return torch.optim.Adam(groups, lr=config.lr, betas=(config.adam_beta1, config.adam_beta2), eps=config.adam_eps)
+    kind = torch.optim.Adam if config.adam_normalise == "element" else UniformAdam
+    return kind(groups, lr=config.lr, betas=(config.adam_beta1, config.adam_beta2), eps=config.adam_eps)
 
 
 class IterateAverage:
@@ -359,6 +362,7 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     step, history = 0, list[dict[str, float]]()
     cache_tensor: torch.Tensor | None = None
     average = IterateAverage(config) if config.average_tail > 0 else None
+    origin = params.tensor.detach().clone() if config.lambda_smooth > 0 else None  # before a checkpoint's tensor
     if checkpoint is not None and checkpoint.is_file():
         step, history, cache_tensor = _load_checkpoint(checkpoint, config, params, opt, exposure, average)
     scene = Scene(problem.mesh, problem.envmap, params.field(), device=problem.device)
@@ -406,6 +410,10 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
                                    config.consistency_of, config.consistency_rho_value,
                                    config.consistency_latent_value)
                 loss = loss + config.lambda_consistency * cons
+        smooth: torch.Tensor | None = None
+        if origin is not None:
+            smooth = params.texel_variation(origin)
+            loss = loss + config.lambda_smooth * smooth
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -420,6 +428,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
                "psnr": 10 * math.log10(1 / max(mse, 1e-12)), "lr": lr}  # fmt: skip
         if cons is not None:
             row["consistency"] = float(cons.detach())
+        if smooth is not None:
+            row["smooth"] = float(smooth.detach())
         if exposure is not None:  # the largest fitted exposure correction so far, in stops (|log2 s_f|)
             row["exposure_stops_max"] = float(exposure.scale().detach().log2().abs().max())
         history.append(row)

@@ -6,9 +6,10 @@
 - `PBRUV`: a texture [R, R, 5] (base colour, roughness, metallic in [0, 1]) on an xatlas unwrap.
 
 Each gives `tensor` (the field's own leaf), `decoder` (the triplane variants' decoder, or None), `field()` (for the
-path tracer), `gbuffer(points, uv)` (the values the anchor compares: [N, 9] (rho_d, latent) or [N, 5] PBR) and
-`project()` (keeps texture values in range). With TTOConfig.train_decoder the triplane variants get a private copy
-of their decoder whose weights Adam fine-tunes with the planes (docs/design-notes.md, "TTO fine-tunes the decoder").
+path tracer), `gbuffer(points, uv)` (the values the anchor compares: [N, 9] (rho_d, latent) or [N, 5] PBR),
+`project()` (keeps texture values in range) and `texel_variation(origin)` (the smoothness term). With
+TTOConfig.train_decoder the triplane variants get a private copy of their decoder whose weights Adam fine-tunes with
+the planes (docs/design-notes.md, "TTO fine-tunes the decoder").
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import torch
 
 from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder
 from neumatex_core.fields.neural_field import TriplaneMaterialField
-from neumatex_core.fields.triplane import Triplane
+from neumatex_core.fields.triplane import Triplane, neighbour_variation
 from neumatex_core.fields.uv_textures import PBRTextureField, UVTextureField, sample_uv
 from neumatex_core.geometry.surface import SurfaceInteraction
 from neumatex_core.materials.field import MaterialField
@@ -70,6 +71,12 @@ class Parametrisation(ABC):
     @abstractmethod
     def gbuffer(self, points: torch.Tensor, uv: torch.Tensor | None) -> torch.Tensor: ...
 
+    def texel_variation(self, origin: torch.Tensor) -> torch.Tensor:
+        """The smoothness term (TTOConfig.lambda_smooth) of the change from `origin` (a tensor of this one's shape):
+        the mean squared difference between neighbouring texels of tensor - origin, a scalar (`neighbour_variation`
+        of a triplane's planes [3, C, R, R])."""
+        return neighbour_variation(self.tensor - origin)
+
     def project(self) -> None:  # noqa: B027 - a no-op by default: triplanes have no range to keep
         """Clamp the tensor into its valid range after an optimiser step (no-op for triplanes)."""
 
@@ -98,6 +105,9 @@ class _UVTexture(Parametrisation):
         if uv is None:
             raise ValueError("the UV-texture field needs the uvs of the anchor points")
         return sample_uv(self.tensor, uv)
+
+    def texel_variation(self, origin: torch.Tensor) -> torch.Tensor:
+        return neighbour_variation((self.tensor - origin).permute(2, 0, 1))  # [H, W, C] -> [C, H, W]
 
 
 class NeuralUV(_UVTexture):

@@ -234,10 +234,12 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
     """Phase one: the PBR baseline's TTO from the LMRM's PBR head, `config.pbr_steps` steps."""
     # The phases start from the LMRM's structure (its PBR head; its triplane, refitted below). config.basis only
     # named the basis the caller loaded (`basis`), so the phases drop it: LMRM-shaped starts are theirs by design.
-    # The schedule's settling and Adam's settings are the neural phase's: the PBR phase is the baseline's own TTO.
+    # The schedule's settling, the smoothness term and Adam's settings are the neural phase's: the PBR phase is the
+    # baseline's own TTO.
     pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="",
                          select_anchor=False, select_uniform=False, alternative_basis="", settle_fraction=0.0,
-                         adam_beta1=TTOConfig.adam_beta1, adam_beta2=TTOConfig.adam_beta2, adam_eps=TTOConfig.adam_eps)
+                         lambda_smooth=0.0, adam_beta1=TTOConfig.adam_beta1, adam_beta2=TTOConfig.adam_beta2,
+                         adam_eps=TTOConfig.adam_eps, adam_normalise=TTOConfig.adam_normalise)
     pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     return optimise(pbr_problem, pbr_config, progress, should_stop, checkpoint)
 
