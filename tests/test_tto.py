@@ -7,7 +7,6 @@ G-buffers are known), one torch thread, a few seconds per test.
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import replace
 
@@ -856,56 +855,6 @@ def test_smoothness_term_pulls_each_texels_change_towards_its_neighbours(example
     pbr_start._pbr_phase(replace(cfg, lambda_smooth=10.0), example.mesh, example.envmap, example.photos,
                          example.capture.tonemap, truth_prediction, example.basis, True, None, None, None)  # fmt: skip
     assert phases[0].lambda_smooth == 0.0
-
-
-def test_uniform_adam_divides_each_tensor_by_one_normaliser(example, truth_prediction, monkeypatch):
-    """adam_normalise "tensor": the first step moves a tensor by lr x g / RMS(g) (Adam moves every element by lr),
-    so a weak gradient takes a step in proportion; resuming from its state_dict goes on bit for bit; make_optimizer
-    builds it for the neural phase and the PBR phase of init "pbr" keeps torch's Adam."""
-    from neumatex_core.tto import pbr_start
-    from neumatex_core.tto.optimise import make_optimizer
-    from neumatex_core.tto.uniform_adam import UniformAdam
-
-    grad = torch.tensor([1.0, 0.01, -0.5])
-    steps = {}
-    for kind in (torch.optim.Adam, UniformAdam):
-        x = torch.zeros(3, requires_grad=True)
-        opt = kind([x], lr=0.1)
-        x.grad = grad.clone()
-        opt.step()
-        steps[kind] = x.detach().clone()
-    assert torch.allclose(steps[torch.optim.Adam], -0.1 * grad.sign(), atol=1e-6)
-    assert torch.allclose(steps[UniformAdam], -0.1 * grad / grad.square().mean().sqrt(), atol=1e-6)
-    g = torch.Generator().manual_seed(0)
-    grads = [torch.randn(3, generator=g) for _ in range(6)]
-    x, y = torch.zeros(3, requires_grad=True), torch.zeros(3, requires_grad=True)
-    whole = UniformAdam([x], lr=0.1, betas=(0.8, 0.99))
-    for i, gr in enumerate(grads):
-        x.grad = gr.clone()
-        whole.step()
-        if i == 2:
-            saved, at = copy.deepcopy(whole.state_dict()), x.detach().clone()  # as a checkpoint holds it
-    with torch.no_grad():
-        y.copy_(at)
-    resumed = UniformAdam([y], lr=0.1, betas=(0.8, 0.99))
-    resumed.load_state_dict(saved)
-    for gr in grads[3:]:
-        y.grad = gr.clone()
-        resumed.step()
-    assert torch.equal(x.detach(), y.detach())
-    cfg = TTOConfig.preset("tiny", init="lmrm", adam_normalise="tensor")
-    cfg.check()
-    p = build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, truth_prediction,
-                      example.basis)  # fmt: skip
-    assert isinstance(make_optimizer(p.params, cfg), UniformAdam)
-    assert type(make_optimizer(p.params, replace(cfg, adam_normalise="element"))) is torch.optim.Adam
-    with pytest.raises(ValueError, match="adam_normalise"):
-        replace(cfg, adam_normalise="row").check()  # type: ignore[arg-type]
-    phases: list[TTOConfig] = []
-    monkeypatch.setattr(pbr_start, "optimise", lambda problem, config, *a, **k: phases.append(config))
-    pbr_start._pbr_phase(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
-                         truth_prediction, example.basis, True, None, None, None)  # fmt: skip
-    assert phases[0].adam_normalise == "element"
 
 
 def _pbr_scene(example: Example, prediction: LMRMPrediction, values: list[float]):

@@ -187,9 +187,6 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # Adam's full step (design note 52)
     "pbr_start_default_smooth01": {**EXTRACTION_DEFAULT, "lambda_smooth": 0.1},
     "pbr_start_default_smooth1": {**EXTRACTION_DEFAULT, "lambda_smooth": 1.0},
-    # the default whose neural phase normalises each tensor's Adam step as a whole (tto/uniform_adam.py): a weakly
-    # reached texel's noisy gradient takes a proportionally small step, not Adam's full one (design note 52)
-    "pbr_start_default_uniform_adam": {**EXTRACTION_DEFAULT, "adam_normalise": "tensor"},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)

@@ -38,7 +38,6 @@ RegKind = Literal["uncertainty", "none", "oracle", "start"]
 ConsistencyKind = Literal["change", "value", "value_latent", "value_rho"]
 MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
-AdamNormaliseKind = Literal["element", "tensor"]
 PRESETS = ("tiny", "cpu", "gpu")
 BIG = 1 << 24
 # consistency_rho_value of the "uniform" variation (one material over the whole object): on the Cycles captures,
@@ -145,10 +144,6 @@ class TTOConfig:
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     adam_eps: float = 1e-8
-    # "element": Adam (each element divided by the root of its own second moment); "tensor": one normaliser per tensor,
-    # the RMS of those roots (tto/uniform_adam.py), so a weakly reached texel's noisy gradient takes a step in
-    # proportion to its averaged size, not a full one. The neural phase's alone, like the epsilon (item 52)
-    adam_normalise: AdamNormaliseKind = "element"
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # init "pbr" with train_decoder: whether the neural phase fine-tunes its decoder where it runs in a basis other

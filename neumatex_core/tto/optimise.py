@@ -50,7 +50,6 @@ from neumatex_core.tto.loss import (
     uncertainty_weights,
 )
 from neumatex_core.tto.params import PBRUV, NeuralTriplane, NeuralUV, Parametrisation, PBRTriplane
-from neumatex_core.tto.uniform_adam import UniformAdam
 
 Progress = Callable[[int, int, dict[str, float]], None]
 Truth = Callable[[torch.Tensor], torch.Tensor]  # points [P, 3] -> ground-truth (rho_d, latent) [P, 9]
@@ -226,17 +225,15 @@ def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
 
 
 def make_optimizer(params: Parametrisation, config: TTOConfig,
-                   exposure: ExposureFit | None = None) -> torch.optim.Optimizer:
+                   exposure: ExposureFit | None = None) -> torch.optim.Adam:
     """Adam over the field's tensor (group 0), with train_decoder its decoder (lr x decoder_lr) and with `exposure`
-    the photos' log-scales (at exposure_lr, on the same cosine schedule); with adam_normalise "tensor" the Adam that
-    normalises each tensor as a whole (tto/uniform_adam.py)."""
+    the photos' log-scales (at exposure_lr, on the same cosine schedule)."""
     groups: list[dict[str, Any]] = [{"params": [params.tensor], "lr_scale": 1.0}]
     if params.decoder_parameters():
         groups.append({"params": params.decoder_parameters(), "lr_scale": config.decoder_lr})
     if exposure is not None:
         groups.append({"params": [exposure.log_scale], "lr_scale": config.exposure_lr / config.lr})
-    kind = torch.optim.Adam if config.adam_normalise == "element" else UniformAdam
-    return kind(groups, lr=config.lr, betas=(config.adam_beta1, config.adam_beta2), eps=config.adam_eps)
+    return torch.optim.Adam(groups, lr=config.lr, betas=(config.adam_beta1, config.adam_beta2), eps=config.adam_eps)
 
 
 class IterateAverage:
