@@ -7,6 +7,7 @@ G-buffers are known), one torch thread, a few seconds per test.
 
 from __future__ import annotations
 
+import importlib
 import math
 from dataclasses import replace
 
@@ -22,7 +23,8 @@ from neumatex_core.lmrm.inference import LMRMPrediction
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
 from neumatex_core.tto import Anchor, TTOConfig, build_problem, optimise, oracle_weights, uncertainty_weights
-from neumatex_core.tto.loss import photometric_loss, regulariser
+from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.loss import photometric_loss, regulariser, tonemap_slope
 from neumatex_core.tto.optimise import step_generator
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
@@ -71,7 +73,7 @@ def test_tto_lowers_photometric_loss_and_moves_gbuffers_toward_truth(example, tr
     assert scores["psnr_latents"] == pytest.approx(10 * math.log10(1 / lat1), abs=1e-3)
 
 
-@pytest.mark.parametrize("kind", ["l2", "decorrelated", "linear_decorrelated"])
+@pytest.mark.parametrize("kind", ["l2", "decorrelated", "linear_decorrelated", "decorrelated_debiased"])
 def test_decorrelated_photo_loss_has_no_variance_bias(kind):
     """A pixel whose samples are theta * X, X in {0, 2} with equal odds (mean 1, variance 1), against a photo of
     0.2 (theta* = 0.2), 8 spp, linear tonemap. The squared error of the 8-sample mean has expectation
@@ -97,6 +99,78 @@ def test_decorrelated_photo_loss_has_no_variance_bias(kind):
         assert abs(mean) < 4 * se and se < 0.005, (mean, se)
 
 
+@pytest.mark.parametrize("kind", ["l2", "decorrelated", "linear_decorrelated", "decorrelated_debiased"])
+def test_debiased_losses_are_least_at_a_noise_free_photo_through_the_srgb_tonemap(kind):
+    """Samples theta * X, X in {0.5, 1.5} with equal odds, 8 spp, against a noise-free photo T(0.2) through the sRGB
+    tonemap (theta* = 0.2). The L2's gradient at theta* is its two biases': the tonemap's concavity (an 8-sample
+    mean's tonemap lies below T(theta), which pushes theta up) and the variance term (down, larger here), so it is
+    > 0 (about 0.002); "decorrelated" has only the concavity of its 4-sample halves, < 0 (about -0.01); both beyond
+    8 standard errors of the mean over 40 batches of 4096 pixels. "linear_decorrelated" (no curvature in linear
+    radiance, no variance term) and "decorrelated_debiased" (each half's gap removed by the delta method, exact to
+    second order: the rest is below the test's noise here) have 0 within 4 standard errors."""
+    spp, n, batches = 8, 4096, 40
+    tonemap = Tonemap(transfer="srgb")
+    g = torch.Generator().manual_seed(3)
+    grads = []
+    for _ in range(batches):
+        theta = torch.tensor(0.2, requires_grad=True)
+        x = (0.5 + torch.randint(0, 2, (n * spp, 1), generator=g).float()).expand(-1, 3)
+        objective, _ = photometric_loss(theta * x, tonemap.apply(torch.full((n, 3), 0.2)), spp, tonemap, kind=kind)
+        (grad,) = torch.autograd.grad(objective, theta)
+        grads.append(float(grad))
+    mean = sum(grads) / batches
+    se = math.sqrt(sum((v - mean) ** 2 for v in grads) / (batches - 1) / batches)
+    if kind == "l2":
+        assert mean > 8 * se, (mean, se)
+    elif kind == "decorrelated":
+        assert mean < -8 * se, (mean, se)
+    else:
+        assert abs(mean) < 4 * se and se < 0.0005, (mean, se)
+
+
+def test_linear_loss_weighed_at_the_smoothed_photo_is_not_pulled_darker_by_the_photos_noise(example):
+    """Noisy photos of a flat radiance mu = 0.2 (each foreground pixel mu * Z, Z in {0.5, 1.5} with equal odds, sRGB
+    tonemap) and a noise-free render theta. "linear_decorrelated" weighs a pixel by T'(x)^2 with x its photo's
+    linear value; at its own value the darker pixels weigh more, so at theta = mu the gradient is the mean of
+    2 T'(x)^2 (mu - x): 0.1 (T'(0.1)^2 - T'(0.3)^2) in expectation, > 0, pulling theta below mu. Weighed at the
+    photo's 5 x 5 foreground mean (`PhotoSet.smoothed_colour(2)`) a pixel's own noise is at most 1/ (the window's
+    foreground pixels) of its weight's argument, so the expected gradient at mu is near 0: asserted below a tenth of
+    the own-value one (an interior pixel's window holds 25 pixels; the silhouette's fewer). Both within 4 standard
+    errors of their per-pixel terms."""
+    tonemap = Tonemap(transfer="srgb")
+    g = torch.Generator().manual_seed(5)
+    images, mu = [], 0.2
+    for cam in example.photos.cameras:
+        z = 0.5 + torch.randint(0, 2, (cam.height, cam.width, 1), generator=g).float()
+        images.append(tonemap.apply(mu * z.expand(-1, -1, 3)).numpy())
+    photos = PhotoSet(images, example.photos.cameras, example.mesh)
+    smoothed = photos.smoothed_colour(2)
+    assert torch.equal(photos.smoothed_colour(0), photos.colour)
+    # one interior pixel checked by hand: its window's foreground pixels' mean
+    k = int(((photos.pixel[:, 0] == 0) & (photos.pixel[:, 1] == 32) & (photos.pixel[:, 2] == 32)).nonzero()[0])
+    near = (photos.pixel[:, 0] == 0) & ((photos.pixel[:, 1:] - photos.pixel[k, 1:]).abs().amax(1) <= 2)
+    assert torch.allclose(smoothed[k], photos.colour[near].mean(0), atol=1e-6) and int(near.sum()) == 25
+    n = photos.size
+
+    def per_pixel_gradient(weight_target: torch.Tensor | None) -> torch.Tensor:
+        theta = torch.full((n, 1), mu, requires_grad=True)
+        radiance = theta.expand(-1, 3).repeat_interleave(2, 0)  # 2 identical samples a pixel: no render noise
+        objective, _ = photometric_loss(radiance, photos.colour, 2, tonemap, kind="linear_decorrelated",
+                                        weight_target=weight_target)  # fmt: skip
+        (grad,) = torch.autograd.grad(objective * n, theta)
+        return grad.squeeze(1)  # each pixel's term of the gradient on a shared theta
+
+    def slope(x: float) -> float:
+        return float(tonemap_slope(tonemap, torch.full((1, 3), x))[0, 0])
+
+    expected = 0.1 * (slope(0.1) ** 2 - slope(0.3) ** 2)
+    own, weighed = per_pixel_gradient(None), per_pixel_gradient(smoothed)
+    se = float(own.std()) / math.sqrt(n)
+    assert expected > 20 * se and abs(float(own.mean()) - expected) < 4 * se, (float(own.mean()), expected, se)
+    assert abs(float(weighed.mean())) < 0.1 * expected + 4 * float(weighed.std()) / math.sqrt(n), \
+        (float(weighed.mean()), expected)
+
+
 def test_decorrelated_photo_loss_logs_the_full_pixel_error():
     """Both kinds log the same mse (of the spp-sample mean); the decorrelated objective is the product of the two
     halves' errors, so it differs from that mse and can be negative."""
@@ -111,6 +185,35 @@ def test_decorrelated_photo_loss_logs_the_full_pixel_error():
         photometric_loss(radiance, target.repeat(2, 1), 1, tonemap, kind="decorrelated")
     with pytest.raises(ValueError, match="spp >= 2"):
         TTOConfig.preset("cpu", photo_loss="decorrelated", spp=1).check()
+
+
+def test_debiased_decorrelated_loss_is_the_product_of_each_halfs_debiased_error():
+    """One pixel of 4 samples through the sRGB tonemap: the objective is (T(a) - g_a - y)(T(b) - g_b - y) with a, b
+    the halves' means and g = T''(mean) s^2 / (2 * 2) (s^2 the half's unbiased sample variance, T'' by finite
+    differences here); under a linear tonemap (T'' = 0) it is "decorrelated" itself."""
+    tonemap = Tonemap(transfer="srgb")
+    radiance = torch.tensor([[0.1] * 3, [0.3] * 3, [0.2] * 3, [0.6] * 3])
+    target = torch.full((1, 3), 0.5)
+
+    def curvature(x: float, h: float = 1e-4) -> float:
+        t = tonemap.apply(torch.tensor([x - h, x, x + h], dtype=torch.float64))
+        return float((t[0] - 2 * t[1] + t[2]) / h**2)
+
+    def shown(x: float) -> float:
+        return float(tonemap.apply(torch.tensor(x)))
+
+    ea = shown(0.2) - curvature(0.2) * 0.02 / 4 - 0.5
+    eb = shown(0.4) - curvature(0.4) * 0.08 / 4 - 0.5
+    objective, _ = photometric_loss(radiance, target, 4, tonemap, kind="decorrelated_debiased")
+    assert float(objective) == pytest.approx(ea * eb, rel=1e-3)
+    linear = Tonemap(transfer="linear")
+    debiased, _ = photometric_loss(radiance, target, 4, linear, kind="decorrelated_debiased")
+    plain, _ = photometric_loss(radiance, target, 4, linear, kind="decorrelated")
+    assert float(debiased) == pytest.approx(float(plain)) == pytest.approx((0.2 - 0.5) * (0.4 - 0.5))
+    with pytest.raises(ValueError, match="spp >= 4"):
+        photometric_loss(radiance, target.repeat(2, 1), 2, tonemap, kind="decorrelated_debiased")
+    with pytest.raises(ValueError, match="unknown photometric loss"):
+        photometric_loss(radiance, target, 4, tonemap, kind="l1")  # type: ignore[arg-type]
 
 
 def test_regulariser_weights_are_exp_minus_log_var():
@@ -777,16 +880,22 @@ def test_iterate_averaging_returns_the_tails_mean_and_resumes(example, truth_pre
 def test_settling_phase_traces_the_same_rays_at_more_samples_on_its_own_schedule(example, truth_prediction,
                                                                                   monkeypatch):
     """settle_fraction 0.5 over 8 steps: steps 0-3 draw 64 pixels x 2 spp, steps 4-7 16 x 8 (the same rays); the
-    rate falls by a cosine from lr to lr x lr_final over steps 0-3, then from lr x settle_lr over steps 4-7; Adam
-    gets the config's epsilon and betas; the PBR phase of init "pbr" neither settles nor takes them; and the cached
-    estimator, whose cache holds one sample count, is refused."""
+    rate falls by a cosine from lr to lr x lr_final over steps 0-3, then from lr x settle_lr over steps 4-7; steps
+    4-7 take settle_photo_loss; Adam gets the config's epsilon and betas; the PBR phase of init "pbr" neither
+    settles nor takes them; and the cached estimator, whose cache holds one sample count, is refused."""
     from neumatex_core.tto import pbr_start
     from neumatex_core.tto.optimise import learning_rate, make_optimizer
 
     cfg = TTOConfig.preset("tiny", steps=8, pixels=64, spp=2, max_bounces=1, checkpoint_every=0, init="lmrm",
                            lr=0.1, lr_final=0.1, settle_fraction=0.5, settle_spp=8, settle_lr=0.5, adam_eps=1e-3,
-                           adam_beta1=0.8)  # fmt: skip
+                           adam_beta1=0.8, settle_photo_loss="decorrelated_debiased")  # fmt: skip
     cfg.check()
+    with pytest.raises(ValueError, match="spp >= 4"):
+        replace(cfg, settle_spp=2).check()
+    kinds: list[str] = []
+    optimise_module = importlib.import_module("neumatex_core.tto.optimise")  # the package's `optimise` is the function
+    loss = optimise_module.photometric_loss
+    monkeypatch.setattr(optimise_module, "photometric_loss", lambda *a: kinds.append(a[5]) or loss(*a))
     assert [cfg.batch_at(s) for s in (0, 3, 4, 7)] == [(64, 2), (64, 2), (16, 8), (16, 8)]
     rates = [learning_rate(cfg, s) for s in range(8)]
     assert rates[0] == pytest.approx(0.1) and rates[4] == pytest.approx(0.05)
@@ -804,6 +913,8 @@ def test_settling_phase_traces_the_same_rays_at_more_samples_on_its_own_schedule
     monkeypatch.setattr(p.photos, "batch", lambda pixels, spp, g: drawn.append((pixels, spp)) or batch(pixels, spp, g))
     result = optimise(p, cfg)
     assert drawn == [(64, 2)] * 4 + [(16, 8)] * 4
+    assert kinds == ["l2"] * 4 + ["decorrelated_debiased"] * 4
+    assert replace(cfg, settle_fraction=0.0).loss_at(7) == "l2"
     assert [row["lr"] for row in result.history] == pytest.approx(rates)
     with pytest.raises(ValueError, match="settle_fraction"):
         replace(cfg, estimator="cached").check()
@@ -813,6 +924,7 @@ def test_settling_phase_traces_the_same_rays_at_more_samples_on_its_own_schedule
                          truth_prediction, example.basis, True, None, None, None)  # fmt: skip
     assert (phases[0].settle_fraction, phases[0].adam_eps, phases[0].adam_beta1, phases[0].material) == (
         0.0, 1e-8, 0.9, "pbr")
+    assert phases[0].loss_at(7) == "l2"
 
 
 def test_smoothness_term_pulls_each_texels_change_towards_its_neighbours(example, truth_prediction, monkeypatch):

@@ -16,9 +16,10 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
   photo pixels is cached every `cache_every` steps, `render/transport_cache.py`, and each step re-evaluates only
   the material; cheaper steps, but it measured worse at equal time so far: docs/design-notes.md, item 22);
 - photo_loss: "l2" (the paper's: the squared error of each pixel's spp-sample mean), "decorrelated" (the product of
-  two independent half-estimates' errors) or "linear_decorrelated" (products of distinct samples' errors in linear
+  two independent half-estimates' errors), "linear_decorrelated" (products of distinct samples' errors in linear
   radiance), so the render's Monte Carlo variance adds no gradient (tto/loss.py; measured worse on the benchmark:
-  docs/design-notes.md, item 28);
+  docs/design-notes.md, item 28), or "decorrelated_debiased" ("decorrelated" with each half less the tonemap's gap,
+  estimated from its samples: least at a noise-free photo; item 53);
 - basis: "" (the default neural basis) or the id of another installed basis (materials/data/bases/; with init
   "pbr" or "random" and reg "none", since the LMRM's latents are the default basis's: docs/design-notes.md, item 25).
 """
@@ -58,6 +59,7 @@ RANGES: dict[str, Range] = {
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "settle_fraction": Range(0, 1), "settle_spp": Range(1, 4096), "settle_lr": Range(0, 100, lo_open=True),
     "adam_beta1": Range(0, 0.9999), "adam_beta2": Range(0, 0.99999), "adam_eps": Range(0, 1),
+    "photo_weight_radius": Range(0, 64),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
     "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100),
     "select_fraction": Range(0, 1, lo_open=True), "basis_margin_db": Range(-100, 100),
@@ -138,6 +140,9 @@ class TTOConfig:
     settle_fraction: float = 0.0
     settle_spp: int = 32
     settle_lr: float = 0.1
+    # the settling steps' photometric loss ("" = photo_loss): e.g. the L2 moves the material far at the high rate
+    # and a loss least at a noise-free photo settles it (docs/design-notes.md, item 53)
+    settle_photo_loss: Literal[PhotoLossKind, ""] = ""
     # Adam's moment decay rates and epsilon (torch's defaults). A large epsilon makes the steps of parameters whose
     # gradient is mostly noise small: from the truth 1e-3 keeps 37.3 dB, 1e-2 41.4, but from the PBR start the
     # neural phase then hardly moves (1e-3: PathTrace -1.33 +- 0.23 dB against the default; item 50)
@@ -164,6 +169,10 @@ class TTOConfig:
     photo_exposure: bool = False
     exposure_lr: float = 0.05
     photo_loss: PhotoLossKind = "l2"
+    # photo_loss "linear_decorrelated": each pixel's error is weighed by the tonemap's slope at its photo's mean over
+    # the (2 r + 1)^2 window of foreground pixels around it (0: at its own value, which a noisy photo's noise moves;
+    # tto/loss.py `photometric_loss`)
+    photo_weight_radius: int = 0
     # init "pbr", reg "start": the neural phase is run twice, with the anchor (lambda_reg) and without it, on all
     # photos but `validation_photos` (spread over the capture, each with a fitted photo within 30 degrees), and the
     # result that reproduces those held-out photos better is kept: the anchored one unless dropping the anchor
@@ -263,9 +272,11 @@ class TTOConfig:
         if self.settle_fraction > 0 and self.estimator == "cached":
             raise ValueError("TTO settle_fraction changes the samples per pixel of the traced batches: it needs "
                              f"estimator 'path', got {self.estimator!r}")
-        if self.photo_loss != "l2" and (self.spp < 2 or (self.settle_fraction > 0 and self.settle_spp < 2)):
-            raise ValueError(f"TTO photo_loss={self.photo_loss!r} pairs each pixel's samples: it needs spp >= 2, "
-                             f"got {self.spp} (settle_spp {self.settle_spp})")
+        for kind, spp in ((self.photo_loss, self.spp), (self.loss_at(self.settle_start()), self.settle_spp)):
+            least = 4 if kind == "decorrelated_debiased" else 2
+            if kind != "l2" and spp < least and (spp == self.spp or self.settle_fraction > 0):
+                raise ValueError(f"TTO photo loss {kind!r} pairs each pixel's samples: it needs spp >= {least}, got "
+                                 f"{spp} (spp {self.spp}, settle_spp {self.settle_spp})")
         if self.select_anchor and (self.reg != "start" or self.init != "pbr" or self.lambda_reg <= 0):
             raise ValueError("TTO select_anchor chooses between the anchor to the PBR start and none: it needs init "
                              f"'pbr', reg 'start' and lambda_reg > 0, got {self.init!r}, {self.reg!r}, "
@@ -291,6 +302,12 @@ class TTOConfig:
     def settle_start(self) -> int:
         """The first step (0-based) of the settling phase; `steps` when there is none."""
         return self.steps - round(self.settle_fraction * self.steps)
+
+    def loss_at(self, step: int) -> PhotoLossKind:
+        """The photometric loss of step `step`."""
+        if step >= self.settle_start() and self.settle_fraction > 0 and self.settle_photo_loss:
+            return self.settle_photo_loss
+        return self.photo_loss
 
     def batch_at(self, step: int) -> tuple[int, int]:
         """(pixels, samples per pixel) of step `step`'s photo batch."""

@@ -24,7 +24,8 @@ from neumatex_core.geometry.raycast import RayCaster
 @dataclass
 class RayBatch:
     """origins, directions [n * spp, 3] (samples of one pixel contiguous); target [n, 3] display values; frame [n]
-    (int64) the photo of each pixel; exposure [n] its photo's given exposure multiplier (unitless, > 0)."""
+    (int64) the photo of each pixel; exposure [n] its photo's given exposure multiplier (unitless, > 0); index [n]
+    (int64) each pixel's place among the set's foreground pixels (`PhotoSet.colour`'s rows)."""
 
     origins: torch.Tensor
     directions: torch.Tensor
@@ -32,6 +33,7 @@ class RayBatch:
     spp: int
     frame: torch.Tensor
     exposure: torch.Tensor
+    index: torch.Tensor
 
 
 class PhotoSet:
@@ -120,4 +122,21 @@ class PhotoSet:
             sel = (frame == f).nonzero().squeeze(-1)
             o, d = self.cameras[f].rays_for_pixels(xy[sel, 0], xy[sel, 1])
             origins[sel], directions[sel] = o, d
-        return RayBatch(origins, directions, self.colour[idx], spp, pix[:, 0], self.exposure[pix[:, 0]])
+        return RayBatch(origins, directions, self.colour[idx], spp, pix[:, 0], self.exposure[pix[:, 0]], idx)
+
+    def smoothed_colour(self, radius: int) -> torch.Tensor:
+        """[M, 3] display values: each foreground pixel's mean over the foreground pixels of its photo within the
+        (2 radius + 1)^2 window around it (radius 0: `colour` itself). A noisy photo's pixel value is correlated
+        with its own noise; this mean much less so (what `photometric_loss` weighs a pixel by)."""
+        if radius <= 0:
+            return self.colour
+        out = torch.empty_like(self.colour)
+        for f, cam in enumerate(self.cameras):
+            sel = (self.pixel[:, 0] == f).nonzero().squeeze(-1)
+            x, y = self.pixel[sel, 1].long(), self.pixel[sel, 2].long()
+            dense = torch.zeros(4, cam.height, cam.width, device=self.device)  # colour and coverage
+            dense[:3, y, x] = self.colour[sel].T
+            dense[3, y, x] = 1.0
+            window = torch.nn.functional.avg_pool2d(dense.unsqueeze(0), 2 * radius + 1, stride=1, padding=radius)[0]
+            out[sel] = (window[:3, y, x] / window[3, y, x]).T  # the pixel itself is covered: no division by 0
+        return out

@@ -27,7 +27,7 @@ ORACLE_EPS = 1e-4  # floor of the oracle's squared error (a perfect LMRM channel
 LOG_VAR_MIN = -12.0  # floor of the predicted log-variances: weights at most e^12
 
 
-PhotoLossKind = Literal["l2", "decorrelated", "linear_decorrelated"]
+PhotoLossKind = Literal["l2", "decorrelated", "linear_decorrelated", "decorrelated_debiased"]
 DARK_FLOOR = 0.01  # linear radiance (x exposure) below which "linear_decorrelated" weighs a pixel as if at it
 CLIPPED = 0.999  # display value from which a photo's pixel counts as clipped (its radiance is only a lower bound)
 
@@ -42,9 +42,22 @@ def tonemap_slope(tonemap: Tonemap, x: torch.Tensor) -> torch.Tensor:
     return slope
 
 
+def tonemap_curvature(tonemap: Tonemap, x: torch.Tensor) -> torch.Tensor:
+    """d^2T/dx^2 [..., 3] at linear radiance x [..., 3] (detached), x held between DARK_FLOOR / exposure and just
+    below the clip as in `tonemap_slope` (the sRGB curvature is unbounded at 0)."""
+    lo, hi = DARK_FLOOR / tonemap.exposure, CLIPPED / tonemap.exposure
+    with torch.enable_grad():
+        at = x.detach().clamp(lo, hi).requires_grad_(True)
+        (slope,) = torch.autograd.grad(tonemap.apply(at).sum(), at, create_graph=True)
+        if not slope.requires_grad:  # a linear transfer: the slope is constant
+            return torch.zeros_like(at)
+        (curvature,) = torch.autograd.grad(slope.sum(), at)
+    return curvature
+
+
 def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, tonemap: Tonemap,
-                     scale: torch.Tensor | None = None, kind: PhotoLossKind = "l2"
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+                     scale: torch.Tensor | None = None, kind: PhotoLossKind = "l2",
+                     weight_target: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """L_photo of path samples radiance [n * spp, 3] (linear, samples of one pixel contiguous and independent)
     against target display values [n, 3]; scale [n] (unitless): each pixel's photo's exposure multiplier on top of
     T's (None: 1). Returns (objective, mse): the objective TTO descends and, detached, the mean of
@@ -55,7 +68,12 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
     against the photo's linear value x = T^-1(target), the product averaged over every pair of distinct samples
     (e_i e_j, i != j: the squared error of the pixel's mean minus its sample variance / spp), weighted by T'(x)^2 (so
     it is the tonemapped squared error to first order), with no bias from T's curvature either; in a clipped photo
-    pixel (target >= CLIPPED) a sample only counts below the clip."""
+    pixel (target >= CLIPPED) a sample only counts below the clip; "decorrelated_debiased" (spp >= 4): "decorrelated"
+    with each half's tonemapped mean less its expected gap to the tonemap of its expectation (T'' Var / (2 n), from
+    the half's n samples, held fixed), least where the render's expectation matches a noise-free photo.
+    weight_target [n, 3] (display values; None: target) is where the linear form's slope is taken: in a noisy photo
+    the pixel's own value is correlated with its noise, and weights that grow as the photo's noise darkens it pull the
+    material darker (`PhotoSet.smoothed_colour` is much less so)."""
     samples = radiance.reshape(-1, spp, 3)
     s = 1.0 if scale is None else scale.reshape(-1, 1)
     with torch.set_grad_enabled(kind == "l2" and torch.is_grad_enabled()):  # the other kinds only log it
@@ -64,10 +82,27 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
     if kind == "l2":
         return mse, mse.detach()
     if spp < 2:
-        raise ValueError(f"the decorrelated photometric loss needs spp >= 2, got {spp}")
+        raise ValueError(f"the {kind} photometric loss needs spp >= 2, got {spp}")
+    if kind == "decorrelated_debiased":
+        # Each half's tonemapped mean less its expected gap to the tonemap of its expectation (the delta method: T''
+        # Var / (2 n) for a mean of n samples, T concave, so an n-sample render's tonemap lies below a noise-free
+        # photo's at the same radiance), estimated from the half's own samples and held fixed; the product of the
+        # halves' errors has no variance term. (The L2 less an estimate of its variance term is unbounded below: the
+        # TTO raised the render's variance without end; docs/design-notes.md item 53.)
+        if spp < 4:
+            raise ValueError(f"the {kind} photometric loss needs spp >= 4 (two samples a half), got {spp}")
+        half_errors = []
+        for half in (samples[:, : spp // 2], samples[:, spp // 2 :]):
+            mean = half.mean(1) * s
+            shown = tonemap.apply(mean)
+            gap = tonemap_curvature(tonemap, mean) * half.detach().var(1) * s * s / (2 * half.shape[1])
+            half_errors.append(shown - torch.maximum(gap, -shown.detach()) - target)
+        return (half_errors[0] * half_errors[1]).mean(), mse
     if kind == "decorrelated":
         a, b = samples[:, : spp // 2].mean(1) * s, samples[:, spp // 2 :].mean(1) * s
         return ((tonemap.apply(a) - target) * (tonemap.apply(b) - target)).mean(), mse
+    if kind != "linear_decorrelated":
+        raise ValueError(f"unknown photometric loss {kind!r}")
     x = tonemap.display_to_linear(target)
     clipped = (target >= CLIPPED).unsqueeze(1)
     lin = samples if scale is None else samples * scale.reshape(-1, 1, 1)
@@ -76,7 +111,8 @@ def photometric_loss(radiance: torch.Tensor, target: torch.Tensor, spp: int, ton
     # the same expectation, less variance), from the sum and the sum of squares
     total = errors.sum(1)
     pairs = (total * total - (errors * errors).sum(1)) / (spp * (spp - 1))
-    return (tonemap_slope(tonemap, x) ** 2 * pairs).mean(), mse
+    at = x if weight_target is None else tonemap.display_to_linear(weight_target)
+    return (tonemap_slope(tonemap, at) ** 2 * pairs).mean(), mse
 
 
 @dataclass

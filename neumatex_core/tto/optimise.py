@@ -322,6 +322,8 @@ class CachedPhotos:
         self.target = torch.empty(0)
         self.frame, self.given = torch.empty(0, dtype=torch.int64), torch.empty(0)
         self.tensor_at_build: torch.Tensor | None = None
+        self.weights = photo_weights(problem, config)  # [M, 3] or None, and those of the cached pixels
+        self.weight_target: torch.Tensor | None = None
 
     def build(self, step: int, tensor: torch.Tensor) -> None:
         """Cache the transport of round step // cache_every with the material of `tensor` (a copy of the
@@ -336,6 +338,7 @@ class CachedPhotos:
             params.tensor.copy_(live)
         self.target, self.tensor_at_build = batch.target, tensor.detach().clone()
         self.frame, self.given = batch.frame, batch.exposure
+        self.weight_target = None if self.weights is None else self.weights[batch.index]
 
     def loss(self, g: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """L_photo of `config.pixels` pixels of the current cache: (objective, mse) as `photometric_loss`."""
@@ -345,7 +348,16 @@ class CachedPhotos:
         rays = (pix.unsqueeze(-1) * cfg.spp + torch.arange(cfg.spp, device=pix.device)).reshape(-1)
         radiance = self.cache.radiance(self.problem.params.field(), rays)
         scale = self.problem.photo_scale(self.frame[pix], self.given[pix])
-        return photometric_loss(radiance, self.target[pix], cfg.spp, self.problem.tonemap, scale, cfg.photo_loss)
+        weight_target = None if self.weight_target is None else self.weight_target[pix]
+        return photometric_loss(radiance, self.target[pix], cfg.spp, self.problem.tonemap, scale, cfg.photo_loss,
+                                weight_target)  # fmt: skip
+
+
+def photo_weights(problem: TTOProblem, config: TTOConfig) -> torch.Tensor | None:
+    """[M, 3] display values at which the loss weighs each foreground pixel of the photos (None: its own)."""
+    if "linear_decorrelated" not in (config.photo_loss, config.settle_photo_loss) or config.photo_weight_radius <= 0:
+        return None
+    return problem.photos.smoothed_colour(config.photo_weight_radius)
 
 
 def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None = None,
@@ -369,6 +381,7 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     if cached is not None and step % config.cache_every != 0:  # resumed inside a round: its cache again
         cached.build(step - step % config.cache_every, params.tensor if cache_tensor is None else cache_tensor)
     anchor = problem.anchor
+    weights = photo_weights(problem, config)
     while step < config.steps:
         if should_stop is not None and should_stop():
             if checkpoint is not None:
@@ -390,8 +403,9 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
             batch = problem.photos.batch(pixels, spp, g)
             radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
             scale = problem.photo_scale(batch.frame, batch.exposure)
-            photo, mse_t = photometric_loss(radiance, batch.target, spp, problem.tonemap, scale,
-                                            config.photo_loss)  # fmt: skip
+            weight_target = None if weights is None else weights[batch.index]
+            photo, mse_t = photometric_loss(radiance, batch.target, spp, problem.tonemap, scale, config.loss_at(step),
+                                            weight_target)  # fmt: skip
         loss = photo
         reg = torch.zeros((), device=problem.device)
         cons: torch.Tensor | None = None
