@@ -272,9 +272,12 @@ class TTOConfig:
         if self.settle_fraction > 0 and self.estimator == "cached":
             raise ValueError("TTO settle_fraction changes the samples per pixel of the traced batches: it needs "
                              f"estimator 'path', got {self.estimator!r}")
-        for kind, spp in ((self.photo_loss, self.spp), (self.loss_at(self.settle_start()), self.settle_spp)):
+        losses = [(self.photo_loss, self.spp)]
+        if self.settle_fraction > 0:
+            losses.append((self.loss_at(self.settle_start()), self.settle_spp))
+        for kind, spp in losses:
             least = 4 if kind == "decorrelated_debiased" else 2
-            if kind != "l2" and spp < least and (spp == self.spp or self.settle_fraction > 0):
+            if kind != "l2" and spp < least:
                 raise ValueError(f"TTO photo loss {kind!r} pairs each pixel's samples: it needs spp >= {least}, got "
                                  f"{spp} (spp {self.spp}, settle_spp {self.settle_spp})")
         if self.select_anchor and (self.reg != "start" or self.init != "pbr" or self.lambda_reg <= 0):

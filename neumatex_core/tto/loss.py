@@ -7,7 +7,9 @@
   "decorrelated" form (Azinovic et al. 2019, "Inverse Path Tracing") multiplies the errors of two independent
   halves of each pixel's samples, (T(s a^) - photo)(T(s b^) - photo), whose expectation is the squared error of
   the expected render alone; "linear_decorrelated" takes such products in linear radiance over every pair of
-  samples. Both measured worse than the L2 on the benchmark (docs/design-notes.md, item 28);
+  samples. Both measured worse than the L2 on the benchmark (docs/design-notes.md, item 28). Against a noise-free
+  photo the L2 of an spp-sample render is also least at a brighter material (T is concave, so E[T(r^)] < T(E[r^]));
+  "decorrelated_debiased" takes that gap, estimated from each half's samples, out of "decorrelated" (item 53);
 - L_reg: mean over surface points p and channels c of w_c(p) (G_c(p) - A_c(p))^2, where A is the anchor (the LMRM's
   G-buffers at p) and w the per-channel weights: exp(-log_var) of the LMRM's uncertainty ("uncertainty"),
   1 / max(e^2, eps) with e the LMRM's actual error against ground truth ("oracle"), or 0 ("none").
