@@ -34,12 +34,17 @@ DARK_FLOOR = 0.01  # linear radiance (x exposure) below which "linear_decorrelat
 CLIPPED = 0.999  # display value from which a photo's pixel counts as clipped (its radiance is only a lower bound)
 
 
+def held_radiance(tonemap: Tonemap, x: torch.Tensor) -> torch.Tensor:
+    """x [..., 3] (linear radiance, detached) held between DARK_FLOOR / exposure and just below the clip, where the
+    tonemap's derivatives are taken (the sRGB ones are unbounded at 0, and 0 above the clip)."""
+    return x.detach().clamp(DARK_FLOOR / tonemap.exposure, CLIPPED / tonemap.exposure)
+
+
 def tonemap_slope(tonemap: Tonemap, x: torch.Tensor) -> torch.Tensor:
     """dT/dx [..., 3] at linear radiance x [..., 3] (detached), with x floored at DARK_FLOOR / exposure and held
     just below the clip (the sRGB slope is unbounded at 0, and 0 above the clip)."""
-    lo, hi = DARK_FLOOR / tonemap.exposure, CLIPPED / tonemap.exposure
     with torch.enable_grad():
-        at = x.detach().clamp(lo, hi).requires_grad_(True)
+        at = held_radiance(tonemap, x).requires_grad_(True)
         (slope,) = torch.autograd.grad(tonemap.apply(at).sum(), at)
     return slope
 
@@ -47,9 +52,8 @@ def tonemap_slope(tonemap: Tonemap, x: torch.Tensor) -> torch.Tensor:
 def tonemap_curvature(tonemap: Tonemap, x: torch.Tensor) -> torch.Tensor:
     """d^2T/dx^2 [..., 3] at linear radiance x [..., 3] (detached), x held between DARK_FLOOR / exposure and just
     below the clip as in `tonemap_slope` (the sRGB curvature is unbounded at 0)."""
-    lo, hi = DARK_FLOOR / tonemap.exposure, CLIPPED / tonemap.exposure
     with torch.enable_grad():
-        at = x.detach().clamp(lo, hi).requires_grad_(True)
+        at = held_radiance(tonemap, x).requires_grad_(True)
         (slope,) = torch.autograd.grad(tonemap.apply(at).sum(), at, create_graph=True)
         if not slope.requires_grad:  # a linear transfer: the slope is constant
             return torch.zeros_like(at)

@@ -314,7 +314,7 @@ class CachedPhotos:
     """The estimator "cached": a TransportCache of `config.cache_pixels` random photo pixels (spp jittered rays
     each), rebuilt every `config.cache_every` steps from the parametrisation's tensor at that step."""
 
-    def __init__(self, problem: TTOProblem, config: TTOConfig, scene: Scene) -> None:
+    def __init__(self, problem: TTOProblem, config: TTOConfig, scene: Scene, weights: torch.Tensor | None) -> None:
         self.problem, self.config, self.scene = problem, config, scene
         self.cache_config = TransportCacheConfig(directions=config.cache_directions,
                                                  indirect_bounces=config.max_bounces - 1)  # fmt: skip
@@ -322,7 +322,7 @@ class CachedPhotos:
         self.target = torch.empty(0)
         self.frame, self.given = torch.empty(0, dtype=torch.int64), torch.empty(0)
         self.tensor_at_build: torch.Tensor | None = None
-        self.weights = photo_weights(problem, config)  # [M, 3] or None, and those of the cached pixels
+        self.weights = weights  # `photo_weights` [M, 3] or None, and below those of the cached pixels
         self.weight_target: torch.Tensor | None = None
 
     def build(self, step: int, tensor: torch.Tensor) -> None:
@@ -377,11 +377,11 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     scene = Scene(problem.mesh, problem.envmap, params.field(), device=problem.device)
     tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1),
                                          spp=config.spp))  # fmt: skip
-    cached = CachedPhotos(problem, config, scene) if config.estimator == "cached" else None
+    weights = photo_weights(problem, config)
+    cached = CachedPhotos(problem, config, scene, weights) if config.estimator == "cached" else None
     if cached is not None and step % config.cache_every != 0:  # resumed inside a round: its cache again
         cached.build(step - step % config.cache_every, params.tensor if cache_tensor is None else cache_tensor)
     anchor = problem.anchor
-    weights = photo_weights(problem, config)
     while step < config.steps:
         if should_stop is not None and should_stop():
             if checkpoint is not None:
