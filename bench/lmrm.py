@@ -10,7 +10,10 @@ G-buffers (positions at pixel centres). Measured in the same run:
   views of an object), averaged over objects, for (a) the LMRM, (b) the training-set mean material (mean rho_d and
   latent over the training objects' covered pixels, recorded in the checkpoint as metrics.training_mean), (c) the
   per-pixel image colour as base colour (the view's pixel, sRGB-decoded; its latent is the training mean, so its
-  PSNR_Latents equals (b));
+  PSNR_Latents equals (b)), (d) how much of the base colour the inputs carry in their plainest form: a linear map
+  from the shading-normalised colour (the linear pixel over the diffuse lighting cue, the LMRM's "ratio" input, and
+  its mean over the object) to rho_d, least-squares fitted on the other test objects (leave one object out), and
+  (e) each object's own mean base colour (an oracle: what knowing only an object's average colour would give);
 - uncertainty calibration on the raw G-buffer (rho_d, l), per pixel and channel: Spearman correlation of the
   predicted variance exp(log_var) with the squared error (pooled over objects, and per channel), and the fraction
   of errors inside the predicted 1-sigma and 2-sigma bands (a calibrated Gaussian gives 0.683 and 0.954);
@@ -21,6 +24,7 @@ G-buffers (positions at pixel centres). Measured in the same run:
 
     .venv/bin/python bench/lmrm.py                       # the whole test split (about 2-4 s per object)
     .venv/bin/python bench/lmrm.py --limit 4 --no-save   # smoke run
+    .venv/bin/python bench/lmrm.py --weights out/lmrm-gpu/lmrm.safetensors   # a candidate (its .json beside it)
 """
 
 from __future__ import annotations
@@ -42,8 +46,17 @@ from neumatex_core.capture.tonemap import srgb_eotf  # noqa: E402
 from neumatex_core.eval.metrics import psnr  # noqa: E402
 from neumatex_core.geometry.mesh import load_mesh  # noqa: E402
 from neumatex_core.lmrm import load_lmrm  # noqa: E402
-from neumatex_core.lmrm.data import finished_objects, load_synth_object  # noqa: E402
+from neumatex_core.lmrm.data import (  # noqa: E402
+    finished_objects,
+    lighting_cues,
+    load_synth_object,
+    prefiltered,
+    to_camera_directions,
+)
+from neumatex_core.lmrm.inference import load_lmrm_from  # noqa: E402
+from neumatex_core.lmrm.model import RATIO_MAX  # noqa: E402
 
+RATIO_PIXELS = 40_000  # covered pixels per object kept for baseline (d)
 CHANNELS = ["rho_r", "rho_g", "rho_b", "l0", "l1", "l2", "l3", "l4", "l5"]
 
 
@@ -105,11 +118,13 @@ def main() -> int:
     ap.add_argument("--figure", default="", help="write the prediction figure to this PNG")
     ap.add_argument("--figure-objects", type=int, default=4)
     ap.add_argument("--max-pairs", type=int, default=400_000, help="(pixel, channel) pairs kept for Spearman")
+    ap.add_argument("--weights", default="", help="an LMRM .safetensors (its .json beside it), not the shipped one")
     ap.add_argument("--no-save", action="store_true")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
-    lmrm = load_lmrm("cpu")
+    weights = Path(args.weights) if args.weights else None
+    lmrm = load_lmrm_from(weights, weights.with_suffix(".json")) if weights else load_lmrm("cpu")
     folders = finished_objects(Path(args.data))
     if args.limit:
         folders = folders[:args.limit]
@@ -125,6 +140,8 @@ def main() -> int:
     rng = np.random.default_rng(0)
     per_object: list[dict[str, Any]] = []
     pairs_var, pairs_err2 = [], []
+    ratio_rows: list[tuple[torch.Tensor, torch.Tensor]] = []  # per object: [P, 7] features, [P, 3] rho_d (d)
+    ratio_rng = np.random.default_rng(1)
     inside1 = np.zeros(9)
     inside2 = np.zeros(9)
     total = 0
@@ -142,6 +159,13 @@ def main() -> int:
         t = obj.targets[m]
         mean_t = mean.expand(t.shape[0], 9)
         image_rho = srgb_eotf(obj.rgb[m])
+        with torch.no_grad():
+            to_cam = to_camera_directions(obj.position, obj.cameras)[m]
+            cues = lighting_cues(prefiltered(obj.envmap), obj.normal[m], to_cam)
+        ratio = (image_rho / cues[:, :3].clamp_min(1e-3)).clamp(0, RATIO_MAX)
+        features = torch.cat([ratio, ratio.mean(0, keepdim=True).expand_as(ratio), torch.ones_like(ratio[:, :1])], -1)
+        pick = torch.from_numpy(ratio_rng.permutation(t.shape[0])[:RATIO_PIXELS])
+        ratio_rows.append((features[pick].double(), t[pick, :3].double()))
         row = {
             "id": obj.id, "pixels": int(m.sum()), "seconds": round(seconds, 3),
             "lmrm_basecolor": psnr(rho[None], t[None, :, :3]),
@@ -149,6 +173,7 @@ def main() -> int:
             "mean_basecolor": psnr(mean_t[None, :, :3], t[None, :, :3]),
             "mean_latents": psnr((mean_t[None, :, 3:9] + 1) / 2, (t[None, :, 3:9] + 1) / 2),
             "image_basecolor": psnr(image_rho[None], t[None, :, :3]),
+            "own_mean_basecolor": psnr(t[None, :, :3].mean(1, keepdim=True).expand(1, t.shape[0], 3), t[None, :, :3]),
         }  # fmt: skip
         per_object.append(row)
         err = torch.cat([rho, lat], -1) - t[:, :9]
@@ -180,6 +205,12 @@ def main() -> int:
                              "lat_true": obj.targets[v, :, :, 3:9].numpy(), "lat_pred": full(l0),
                              "sigma": full(torch.exp(0.5 * lv0).mean(-1, keepdim=True))[..., 0],
                              "error": full(e0)[..., 0]})  # fmt: skip
+    for k, row in enumerate(per_object):  # (d): leave-one-object-out least squares on the shading-normalised colour
+        x = torch.cat([r[0] for j, r in enumerate(ratio_rows) if j != k]) if len(ratio_rows) > 1 else ratio_rows[k][0]
+        y = torch.cat([r[1] for j, r in enumerate(ratio_rows) if j != k]) if len(ratio_rows) > 1 else ratio_rows[k][1]
+        w = torch.linalg.lstsq(x, y).solution
+        xk, yk = ratio_rows[k]
+        row["ratio_basecolor"] = psnr((xk @ w).clamp(0, 1).float()[None], yk.float()[None])
     var_all, err2_all = np.concatenate(pairs_var), np.concatenate(pairs_err2)
     calib = {
         "spearman_all": _spearman(var_all.ravel(), err2_all.ravel()),
@@ -195,6 +226,8 @@ def main() -> int:
     print(f"LMRM                 | {avg['lmrm_basecolor']:6.2f} | {avg['lmrm_latents']:6.2f}")
     print(f"training-set mean    | {avg['mean_basecolor']:6.2f} | {avg['mean_latents']:6.2f}")
     print(f"image colour as rho_d| {avg['image_basecolor']:6.2f} | {avg['mean_latents']:6.2f} (mean latent)")
+    print(f"linear map of the shading-normalised colour (other objects) | {avg['ratio_basecolor']:6.2f} |")
+    print(f"each object's own mean base colour (oracle) | {avg['own_mean_basecolor']:6.2f} |")
     print(f"LMRM - mean material: {avg['lmrm_basecolor'] - avg['mean_basecolor']:+.2f} / "
           f"{avg['lmrm_latents'] - avg['mean_latents']:+.2f} dB; LMRM - image colour: "
           f"{avg['lmrm_basecolor'] - avg['image_basecolor']:+.2f} dB (base colour)")

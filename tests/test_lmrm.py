@@ -173,6 +173,31 @@ def test_training_is_deterministic_and_resumes_exactly(tiny_data, tmp_path):
     assert s1.inputs.inputs.shape[0] >= 16 and s2.inputs.inputs.shape[0] == 23
 
 
+def test_resident_objects_train_like_the_files_and_are_read_once(tiny_data, tmp_path, monkeypatch):
+    """`resident` (the GPU script's data path) keeps each object in memory after its first read and makes the samples
+    from there: the same weights as reading the cache files at every step, with each object read once although the
+    object list is re-read at every epoch (4 steps of 2 of the tiny set's objects: several epochs)."""
+    plain = tiny_train(tiny_data, tmp_path / "plain", steps=4, pbr_steps=1)
+    train_lmrm(plain)
+    reads: list[str] = []
+    real_load = torch.load
+
+    def counting_load(f, *a, **kw):
+        reads.append(str(f))
+        return real_load(f, *a, **kw)
+
+    monkeypatch.setattr("neumatex_core.lmrm.data.torch.load", counting_load)
+    resident = replace(plain, out=str(tmp_path / "resident"), resident=True)
+    train_lmrm(resident)
+    a = load_file(str(tmp_path / "plain" / "lmrm.safetensors"))
+    b = load_file(str(tmp_path / "resident" / "lmrm.safetensors"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    n_objects = len(LMRMDataset([tiny_data], tiny_data.parent / "cache"))
+    data_reads = [r for r in reads if r.endswith(".pt") and "cache" in r]
+    # each object: build_cache's check of the file once and its one read into the store (training_mean included)
+    assert len(data_reads) <= 2 * n_objects < 4 * 2 * 2
+
+
 def test_torchrun_one_process_matches_plain_training(tiny_data, tmp_path):
     plain = tiny_train(tiny_data, tmp_path / "plain", steps=2, pbr_steps=1)
     train_lmrm(plain)

@@ -204,6 +204,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the default whose settling steps (only) take that loss: the L2 moves the material far at the high rate (the
     # fuzz grew less under either unbiased loss), the settling fits it to a noise-free photo; the same cost
     "pbr_start_default_settle_decdb": {**EXTRACTION_DEFAULT, "settle_photo_loss": "decorrelated_debiased"},
+    # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
+    # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 54)
+    "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
+                                              "settle_photo_loss": "decorrelated_debiased"},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)

@@ -8,6 +8,9 @@ cues, 14 target channels), made once per object. `LMRMDataset.sample` turns a ca
 and supervised points, with augmentation (training): a random rotation of the world about +Y (positions, normals
 and directions; pixel colours and cues are unchanged, so the sample stays physically consistent), an exposure
 change (linear pixels and cues scaled together, pixels re-clipped), dropping views, and hiding the lighting.
+A sample is made on the device its cached object lies on (the random numbers always come from the step's CPU
+generator, so a GPU sample draws the same choices as a CPU one); `LMRMDataset(resident=...)` keeps objects on the
+training device after their first use, so a GPU makes its samples itself instead of waiting on one CPU process.
 """
 
 from __future__ import annotations
@@ -206,12 +209,13 @@ def make_sample(data: dict[str, Any], generator: torch.Generator, augment: Augme
     """A sample from a cached object (`build_cache`'s dict). n_points <= 0: every covered pixel, in order."""
     mask: torch.Tensor = data["mask"]
     v, h, w = mask.shape
+    device = mask.device
     rgb = data["rgb"].float() / 255
     pos, nrm, to_cam = data["position"], data["normal"], data["to_camera"]
     cues: torch.Tensor | None = data["cues"].float()
     u = torch.rand(4, generator=generator)
     if augment.rotate:
-        r = _rot_y(2 * math.pi * float(u[0]))
+        r = _rot_y(2 * math.pi * float(u[0])).to(device)
         pos, nrm, to_cam = pos @ r.T, nrm @ r.T, to_cam @ r.T
     lo, hi = augment.exposure
     if hi > lo:
@@ -224,7 +228,7 @@ def make_sample(data: dict[str, Any], generator: torch.Generator, augment: Augme
     idx = mask.reshape(-1).nonzero().squeeze(-1)
 
     def image(values: torch.Tensor) -> torch.Tensor:
-        full = torch.zeros(v * h * w, values.shape[-1], dtype=values.dtype)
+        full = torch.zeros(v * h * w, values.shape[-1], dtype=values.dtype, device=device)
         full[idx] = values
         return full.reshape(v, h, w, -1)
 
@@ -232,22 +236,28 @@ def make_sample(data: dict[str, Any], generator: torch.Generator, augment: Augme
     if augment.min_views < v:
         k = augment.min_views + int(torch.randint(0, v - augment.min_views + 1, (1,), generator=generator))
         keep = torch.randperm(v, generator=generator)[:k].sort().values
+    keep = keep.to(device)
     inputs = view_inputs(image(rgb)[keep], mask[keep], image(nrm)[keep], image(to_cam)[keep],
                          image(cues)[keep] if cues is not None else None)  # fmt: skip
     obj = ObjectInputs(inputs, mask[keep], image(pos)[keep])
     targets = data["targets"].float()
     if 0 < n_points < pos.shape[0]:
-        pick = torch.randperm(pos.shape[0], generator=generator)[:n_points]
+        pick = torch.randperm(pos.shape[0], generator=generator)[:n_points].to(device)
         return Sample(obj, pos[pick], targets[pick])
     return Sample(obj, pos, targets)
 
 
 class LMRMDataset:
-    """The cached objects of one or more synth folders. `sample(i, generator, augment, n_points)`."""
+    """The cached objects of one or more synth folders. `sample(i, generator, augment, n_points)`.
 
-    def __init__(self, roots: list[Path], cache_dir: Path, exclude: set[str] | None = None) -> None:
+    resident: a store (folder path -> cached dict on `device`) kept across datasets: an object is read once and
+    stays there, so samples are made on `device`; None reads the cache file at each use (on the CPU)."""
+
+    def __init__(self, roots: list[Path], cache_dir: Path, exclude: set[str] | None = None,
+                 resident: dict[str, dict[str, Any]] | None = None, device: torch.device | None = None) -> None:
         self.roots, self.cache_dir = roots, cache_dir
         self.folders = [f for r in roots for f in finished_objects(r) if f.name not in (exclude or set())]
+        self.resident, self.device = resident, device or torch.device("cpu")
 
     def __len__(self) -> int:
         return len(self.folders)
@@ -257,8 +267,13 @@ class LMRMDataset:
         return [f.name for f in self.folders]
 
     def load(self, i: int) -> dict[str, Any]:
-        data: dict[str, Any] = torch.load(build_cache(self.folders[i], self.cache_dir), map_location="cpu",
+        key = str(self.folders[i])
+        if self.resident is not None and key in self.resident:
+            return self.resident[key]
+        data: dict[str, Any] = torch.load(build_cache(self.folders[i], self.cache_dir), map_location=self.device,
                                           weights_only=True)  # fmt: skip
+        if self.resident is not None:
+            self.resident[key] = data
         return data
 
     def sample(self, i: int, generator: torch.Generator, augment: Augment, n_points: int) -> Sample:
@@ -280,7 +295,7 @@ def training_mean(dataset: LMRMDataset, limit: int = 64) -> torch.Tensor:
     picks = sorted({int(round(k * (n - 1) / max(limit - 1, 1))) for k in range(min(n, limit))})
     total, count = torch.zeros(N_TARGETS, dtype=torch.float64), 0
     for i in picks:
-        t = dataset.load(i)["targets"].double()
+        t = dataset.load(i)["targets"].double().cpu()
         total += t.sum(0)
         count += t.shape[0]
     return (total / max(count, 1)).float()

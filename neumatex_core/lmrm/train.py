@@ -71,6 +71,8 @@ class TrainLMRMConfig:
     max_minutes: float = option(0.0, "stop (with a checkpoint) after this many minutes; 0: no limit")
     threads: int = option(1, "torch intra-op threads (CPU)")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
+    resident: bool = option(False, "keep every object on the training device after its first use and make the "
+                                   "samples there (a GPU holds thousands; the samples are the same)")
     resume: bool = option(True, "continue from out/checkpoint.pt when it exists")
     install: bool = option(False, "copy the final weights into neumatex_core/lmrm/data/ (the shipped model)")
 
@@ -125,14 +127,15 @@ def _generator(seed: int, *keys: int) -> torch.Generator:
 class _Order:
     """The object order of the current epoch (ids), re-read from the data folders at each new epoch."""
 
-    def __init__(self, cfg: TrainLMRMConfig, roots: list[Path], cache: Path) -> None:
-        self.cfg, self.roots, self.cache = cfg, roots, cache
+    def __init__(self, cfg: TrainLMRMConfig, roots: list[Path], cache: Path, device: torch.device) -> None:
+        self.cfg, self.roots, self.cache, self.device = cfg, roots, cache, device
+        self.resident: dict[str, dict[str, Any]] | None = {} if cfg.resident else None
         self.epoch, self.pos = -1, 0
         self.ids: list[str] = []
         self.dataset = self._scan()
 
     def _scan(self) -> LMRMDataset:
-        ds = LMRMDataset(self.roots, self.cache)
+        ds = LMRMDataset(self.roots, self.cache, resident=self.resident, device=self.device)
         ds.folders = [f for f in ds.folders if not _is_val(f.name, self.cfg.val_modulo)]
         if not ds.folders:
             raise ValueError(f"{', '.join(map(str, self.roots))}: no finished training objects "
@@ -246,7 +249,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
     ema = LMRMNet(model_cfg).to(device)
     ema.load_state_dict(net.state_dict())
     ema.requires_grad_(False)
-    order = _Order(cfg, roots, cache)
+    order = _Order(cfg, roots, cache, device)
     history: list[dict[str, Any]] = []
     validation: list[dict[str, Any]] = []
     step = 0
@@ -342,6 +345,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
                 "data": {"folders": [str(r) for r in roots], "objects": len(order.dataset),
                          "manifest_sha256": order.dataset.manifest_hash(), "validation_ids": val_set.ids},
                 "training": {"world_size": world, "device": str(device),
+                             "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                              "minutes_this_run": round((time.monotonic() - started) / 60, 2)}}  # fmt: skip
         basis = load_basis()
         save_lmrm(ema, out / "lmrm.safetensors", out / "lmrm.json", basis, info)
