@@ -205,7 +205,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # fuzz grew less under either unbiased loss), the settling fits it to a noise-free photo; the same cost
     "pbr_start_default_settle_decdb": {**EXTRACTION_DEFAULT, "settle_photo_loss": "decorrelated_debiased"},
     # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
-    # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 54)
+    # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
                                               "settle_photo_loss": "decorrelated_debiased"},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
