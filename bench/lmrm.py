@@ -205,11 +205,13 @@ def main() -> int:
                              "lat_true": obj.targets[v, :, :, 3:9].numpy(), "lat_pred": full(l0),
                              "sigma": full(torch.exp(0.5 * lv0).mean(-1, keepdim=True))[..., 0],
                              "error": full(e0)[..., 0]})  # fmt: skip
-    for k, row in enumerate(per_object):  # (d): leave-one-object-out least squares on the shading-normalised colour
-        x = torch.cat([r[0] for j, r in enumerate(ratio_rows) if j != k]) if len(ratio_rows) > 1 else ratio_rows[k][0]
-        y = torch.cat([r[1] for j, r in enumerate(ratio_rows) if j != k]) if len(ratio_rows) > 1 else ratio_rows[k][1]
-        w = torch.linalg.lstsq(x, y).solution
-        xk, yk = ratio_rows[k]
+    # (d): least squares on the shading-normalised colour, leaving each object out of its own fit (normal equations:
+    # every object's X^T X and X^T y are summed once and its own taken away; with one object, it is fitted on itself)
+    gram = [(x.T @ x, x.T @ y) for x, y in ratio_rows]
+    gram_all = (sum(g[0] for g in gram), sum(g[1] for g in gram))
+    for row, (xk, yk), (xx, xy) in zip(per_object, ratio_rows, gram, strict=True):
+        others = (gram_all[0] - xx, gram_all[1] - xy) if len(gram) > 1 else (xx, xy)
+        w = torch.linalg.solve(*others)
         row["ratio_basecolor"] = psnr((xk @ w).clamp(0, 1).float()[None], yk.float()[None])
     var_all, err2_all = np.concatenate(pairs_var), np.concatenate(pairs_err2)
     calib = {
