@@ -428,6 +428,10 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("pbr_start_default_smooth01", extraction) == replace(extraction, lambda_smooth=0.1)
     assert extraction.lambda_smooth == 0.0 and variant_config("pbr", replace(extraction, lambda_smooth=1.0)) == \
         variant_config("pbr", extraction)
+    # the default with coarse high-rate moves (design note 56); no other variant coarsens
+    assert variant_config("pbr_start_default_coarse8", extraction) == replace(extraction, coarse_factor=8)
+    assert extraction.coarse_factor == 1 and variant_config("pbr", replace(extraction, coarse_factor=8)) == \
+        variant_config("pbr", extraction)
     default = variant_config("pbr_start_default_alt_frozen", TTOConfig.preset("cpu"))
     assert default == replace(extraction, select_fraction=0.5, settle_fraction=0.0)
     # its choices scored with fewer samples, or on fewer pixels (tried 2026-11-28, design note 42)

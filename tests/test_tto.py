@@ -969,6 +969,53 @@ def test_smoothness_term_pulls_each_texels_change_towards_its_neighbours(example
     assert phases[0].lambda_smooth == 0.0
 
 
+def test_coarse_steps_move_the_planes_in_blocks_before_the_settling(example, truth_prediction, monkeypatch):
+    """coarse_projection is U U^T (U the bilinear upsampling from a grid `factor` times coarser): symmetric and
+    positive semi-definite (a descent direction stays one), a constant comes back factor^2 times larger and a +-1
+    checkerboard about vanishes; a UV texture [H, W, C] is projected over H and W. With coarse_factor the TTO's
+    change to noisy planes before the settling is smoother than without (the same seed, so the same photo batches),
+    the settling steps move every texel, and the PBR phase of init "pbr" drops it."""
+    from neumatex_core.fields.triplane import coarse_projection, neighbour_variation
+    from neumatex_core.tto import pbr_start
+    from neumatex_core.tto.params import NeuralUV
+
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randn(3, 4, 24, 24, generator=g), torch.randn(3, 4, 24, 24, generator=g)
+    assert float((coarse_projection(a, 4) * b).sum()) == pytest.approx(float((a * coarse_projection(b, 4)).sum()),
+                                                                       rel=1e-4)  # fmt: skip
+    assert float((coarse_projection(a, 4) * a).sum()) > 0
+    assert torch.allclose(coarse_projection(torch.full((3, 4, 24, 24), 0.5), 4), torch.full((3, 4, 24, 24), 8.0))
+    i = torch.arange(24)
+    checker = ((i[:, None] + i[None, :]) % 2 * 2 - 1).float().expand(3, 4, 24, 24)
+    assert float(coarse_projection(checker, 4).abs().max()) < 0.05 * 16
+    uv = NeuralUV(torch.zeros(24, 24, 9), example.basis)
+    uv.tensor.grad = checker[0, :1].permute(1, 2, 0).expand(24, 24, 9).clone()
+    uv.coarsen_gradient(4)
+    assert uv.tensor.grad.shape == (24, 24, 9) and float(uv.tensor.grad.abs().max()) < 0.05 * 16
+    cfg = TTOConfig.preset("tiny", steps=8, pixels=64, spp=2, max_bounces=1, checkpoint_every=0, init="lmrm",
+                           lr=0.02)  # fmt: skip
+    assert replace(cfg, coarse_factor=4, settle_fraction=0.5).coarse_at(3) == 4
+    assert replace(cfg, coarse_factor=4, settle_fraction=0.5).coarse_at(4) == 1
+    noisy = perturbed(truth_prediction, 0.3)
+    start = noisy.triplane.planes.detach().clone()
+    change = {}
+    for factor in (1, 8):
+        coarse_cfg = replace(cfg, coarse_factor=factor)
+        coarse_cfg.check()
+        p = build_problem(coarse_cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap, noisy,
+                          example.basis)  # fmt: skip
+        moved = optimise(p, coarse_cfg).params.tensor.detach() - start
+        change[factor] = float(neighbour_variation(moved)) / float(moved.square().mean())
+    assert change[8] < 0.2 * change[1]
+    with pytest.raises(ValueError, match="coarse_factor"):
+        replace(cfg, coarse_factor=0).check()
+    phases: list[TTOConfig] = []
+    monkeypatch.setattr(pbr_start, "optimise", lambda problem, config, *a, **k: phases.append(config))
+    pbr_start._pbr_phase(replace(cfg, coarse_factor=4), example.mesh, example.envmap, example.photos,
+                         example.capture.tonemap, truth_prediction, example.basis, True, None, None, None)  # fmt: skip
+    assert phases[0].coarse_factor == 1
+
+
 def _pbr_scene(example: Example, prediction: LMRMPrediction, values: list[float]):
     """A PBR triplane holding one PBR material (base colour, roughness, metallic) all over the example's mesh (its
     planes fitted by Adam, the LMRM's PBR head frozen), and photos of it: 6 of the example's views rendered at 64 spp,

@@ -208,6 +208,16 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
                                               "settle_photo_loss": "decorrelated_debiased"},
+    # the default whose high-rate steps move the planes in blocks of 4 / 8 texels a side (TTOConfig.coarse_factor):
+    # a texel that few photo pixels reach moves with its neighbours' pixels, the settling steps move every texel
+    # (design note 56)
+    "pbr_start_default_coarse4": {**EXTRACTION_DEFAULT, "coarse_factor": 4},
+    "pbr_start_default_coarse8": {**EXTRACTION_DEFAULT, "coarse_factor": 8},
+    # ... and 600_settle200_decdb's longer high-rate phase (its losses on the Cycles diffuse and metal captures are made
+    # in the high-rate steps, design note 55) in blocks of 8
+    "pbr_start_default_600_settle200_decdb_coarse8": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
+                                                      "settle_photo_loss": "decorrelated_debiased",
+                                                      "coarse_factor": 8},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)
@@ -301,7 +311,7 @@ REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_si
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
                       "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr",
                       "select_reuse_start", "decoder_in_other_basis", "validation_spp", "validation_stride",
-                      "settle_fraction", "lambda_smooth")
+                      "settle_fraction", "lambda_smooth", "coarse_factor")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

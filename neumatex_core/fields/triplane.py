@@ -67,6 +67,21 @@ class Triplane(nn.Module):
         return self.features(points)
 
 
+def coarse_projection(maps: torch.Tensor, factor: int) -> torch.Tensor:
+    """U U^T maps for feature maps [..., C, H, W], U the bilinear upsampling from a grid `factor` times coarser
+    (at least 1 x 1): the part of a gradient that moves texels in smooth blocks of about factor x factor, a positive
+    semi-definite preconditioner (a descent direction stays one). A gradient constant over a block comes back about
+    factor^2 times larger, one that alternates from texel to texel about cancels."""
+    h, w = maps.shape[-2:]
+    grid = maps.reshape(-1, *maps.shape[-3:])  # [N, C, H, W]
+    coarse = torch.zeros(*grid.shape[:2], max(1, round(h / factor)), max(1, round(w / factor)),
+                         dtype=maps.dtype, device=maps.device, requires_grad=True)  # fmt: skip
+    with torch.enable_grad():
+        up = F.interpolate(coarse, size=(h, w), mode="bilinear", align_corners=False)
+        (adjoint,) = torch.autograd.grad((up * grid.detach()).sum(), coarse)
+    return F.interpolate(adjoint, size=(h, w), mode="bilinear", align_corners=False).reshape(maps.shape)
+
+
 def neighbour_variation(planes: torch.Tensor) -> torch.Tensor:
     """Mean squared difference between neighbouring texels of feature maps [..., H, W] (both axes), a scalar: zero
     for constant planes. TTO's smoothness term (TTOConfig.lambda_smooth) on a triplane's planes [3, C, R, R] or a

@@ -51,6 +51,7 @@ RANGES: dict[str, Range] = {
     "lr": Range(0, 100, lo_open=True), "lr_final": Range(0, 1, lo_open=True), "lambda_reg": Range(0, 1e6),
     "lambda_consistency": Range(0, 1e6), "consistency_sigma": Range(0, 100, lo_open=True),
     "consistency_rho_value": Range(0, 1e6), "consistency_latent_value": Range(0, 1e6), "lambda_smooth": Range(0, 1e6),
+    "coarse_factor": Range(1, 64),
     "reg_points": Range(1, 1 << 20), "reg_pool": Range(1, BIG), "uv_resolution": Range(1, 8192),
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
@@ -237,6 +238,11 @@ class TTOConfig:
     # away cost 5 dB. The neural phase's alone: the PBR phase (the baseline's own TTO) drops it. Off: at 0.1, on
     # benchmark objects 0-5, PathTrace -0.02 +- 0.22 dB against the default (docs/design-notes.md item 52)
     lambda_smooth: float = 0.0
+    # the high-rate steps (before the settling) move the planes in blocks of this many texels a side: each step's
+    # gradient is projected onto a grid this many times coarser (`Parametrisation.coarsen_gradient`), so a texel
+    # that few photo pixels reach moves with its neighbours' photo pixels too; the settling steps move every texel
+    # (1: off; the neural phase's alone, docs/design-notes.md item 56)
+    coarse_factor: int = 1
 
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> TTOConfig:
@@ -305,6 +311,10 @@ class TTOConfig:
     def settle_start(self) -> int:
         """The first step (0-based) of the settling phase; `steps` when there is none."""
         return self.steps - round(self.settle_fraction * self.steps)
+
+    def coarse_at(self, step: int) -> int:
+        """The block size (texels a side) of step `step`'s move of the planes: coarse_factor before the settling."""
+        return self.coarse_factor if step < self.settle_start() else 1
 
     def loss_at(self, step: int) -> PhotoLossKind:
         """The photometric loss of step `step`."""

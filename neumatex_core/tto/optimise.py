@@ -427,6 +427,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
             loss = loss + config.lambda_smooth * smooth
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        if (factor := config.coarse_at(step)) > 1:
+            params.coarsen_gradient(factor)
         opt.step()
         params.project()
         if exposure is not None:

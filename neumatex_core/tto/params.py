@@ -20,7 +20,7 @@ import torch
 
 from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder
 from neumatex_core.fields.neural_field import TriplaneMaterialField
-from neumatex_core.fields.triplane import Triplane, neighbour_variation
+from neumatex_core.fields.triplane import Triplane, coarse_projection, neighbour_variation
 from neumatex_core.fields.uv_textures import PBRTextureField, UVTextureField, sample_uv
 from neumatex_core.geometry.surface import SurfaceInteraction
 from neumatex_core.materials.field import MaterialField
@@ -77,6 +77,12 @@ class Parametrisation(ABC):
         of a triplane's planes [3, C, R, R])."""
         return neighbour_variation(self.tensor - origin)
 
+    def coarsen_gradient(self, factor: int) -> None:
+        """Replace the tensor's gradient by its part that moves blocks of about factor x factor texels
+        (`coarse_projection` of a triplane's planes [3, C, R, R]; TTOConfig.coarse_factor)."""
+        if self.tensor.grad is not None:
+            self.tensor.grad = coarse_projection(self.tensor.grad, factor)
+
     def project(self) -> None:  # noqa: B027 - a no-op by default: triplanes have no range to keep
         """Clamp the tensor into its valid range after an optimiser step (no-op for triplanes)."""
 
@@ -108,6 +114,10 @@ class _UVTexture(Parametrisation):
 
     def texel_variation(self, origin: torch.Tensor) -> torch.Tensor:
         return neighbour_variation((self.tensor - origin).permute(2, 0, 1))  # [H, W, C] -> [C, H, W]
+
+    def coarsen_gradient(self, factor: int) -> None:
+        if self.tensor.grad is not None:
+            self.tensor.grad = coarse_projection(self.tensor.grad.permute(2, 0, 1), factor).permute(1, 2, 0)
 
 
 class NeuralUV(_UVTexture):
