@@ -208,10 +208,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
                                               "settle_photo_loss": "decorrelated_debiased"},
-    # the default whose high-rate steps move the planes in blocks of 4 / 8 texels a side (TTOConfig.coarse_factor):
-    # a texel that few photo pixels reach moves with its neighbours' pixels, the settling steps move every texel
+    # the default whose high-rate steps move the planes in blocks of 8 texels a side (TTOConfig.coarse_factor): a
+    # texel that few photo pixels reach moves with its neighbours' pixels, the settling steps move every texel
     # (design note 56)
-    "pbr_start_default_coarse4": {**EXTRACTION_DEFAULT, "coarse_factor": 4},
     "pbr_start_default_coarse8": {**EXTRACTION_DEFAULT, "coarse_factor": 8},
     # ... and 600_settle200_decdb's longer high-rate phase (its losses on the Cycles diffuse and metal captures are made
     # in the high-rate steps, design note 55) in blocks of 8
