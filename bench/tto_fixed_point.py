@@ -14,7 +14,10 @@ whose objective has its minimum at the truth and whose steps are quiet enough ke
 ceiling its noise and bias put on any start (docs/design-notes.md, note 49). `--set KEY=VALUE` changes a
 `TTOConfig` field of that TTO (repeatable). Prints both scores and the loss (after - before, dB) and appends a JSON
 line to bench/results/tto_fixed_point.jsonl. Needs the LMRM's other heads only for the prediction's structure: it
-runs the pipeline's validate / prepare_views / lmrm stages into --work (resumable).
+runs the pipeline's validate / prepare_views / lmrm stages into --work (resumable). `--resolution R` distils the
+truth into an R x R triplane instead of the LMRM's (fewer numbers for the photos' noise to move); `--data` another
+split, e.g. the same objects synthesised with less noisy photos (`neumatex synth --spp 256`, its references copied
+from the benchmark's: the truth is the same; design note 57).
 """
 
 from __future__ import annotations
@@ -80,14 +83,15 @@ def base_colour_psnr(field: Any, truth: Any, mesh: Any) -> float:
     return float(-10 * torch.log10(((rho.clamp(0, 1) - want) ** 2).mean()))
 
 
-def bench_object(object_dir: Path, work: Path, tto: TTOConfig) -> dict[str, Any]:
+def bench_object(object_dir: Path, work: Path, tto: TTOConfig, resolution: int = 0) -> dict[str, Any]:
     _, pred, cap, mesh, photos = prepared_capture(object_dir, work)
     truth = truth_field(object_dir)
     points, tri = mesh.sample_surface(FIT_POINTS, seed=1)
     g = truth.gbuffer(points, tri)
     t0 = time.perf_counter()
     start, _ = fit_triplane(points, lambda p: (g["base_color"], g["latent"]), truth.basis,
-                            channels=pred.triplane.channels, resolution=pred.triplane.resolution, steps=FIT_STEPS)
+                            channels=pred.triplane.channels, resolution=resolution or pred.triplane.resolution,
+                            steps=FIT_STEPS)  # fmt: skip
     for module in (start.triplane, start.decoder):
         module.requires_grad_(False)
         module.zero_grad(set_to_none=True)
@@ -105,7 +109,8 @@ def bench_object(object_dir: Path, work: Path, tto: TTOConfig) -> dict[str, Any]
           f"TTO {after['psnr_pathtrace_clean']:.2f} ({loss['psnr_pathtrace_clean']:+.2f}), "
           f"{after.get('psnr_relight_clean', float('nan')):.2f} ({loss.get('psnr_relight_clean', float('nan')):+.2f}), "
           f"{after['basecolor']:.2f} ({loss['basecolor']:+.2f}); fit {fit_s:.0f} s, TTO {tto_s:.0f} s", flush=True)
-    return {"object": object_dir.name, "before": before, "after": after, "loss_db": loss, "fit_s": round(fit_s, 1),
+    return {"object": object_dir.name, "data": str(object_dir.parent), "resolution": start.triplane.resolution,
+            "before": before, "after": after, "loss_db": loss, "fit_s": round(fit_s, 1),
             "tto_s": round(tto_s, 1)}  # fmt: skip
 
 
@@ -116,11 +121,14 @@ def main() -> int:
     parser.add_argument("--work", default="runs/bench-tto-fixed-point", type=Path)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a TTOConfig field")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--resolution", type=int, default=0,
+                        help="texels a side of the triplane the truth is distilled into (0: the LMRM's)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     overrides = parse_overrides(args.set)
     tto = fixed_point_config(overrides)
-    rows = [bench_object(args.data / o, args.work / o, tto) for o in args.objects.split(",") if o.strip()]
+    rows = [bench_object(args.data / o, args.work / f"{o}-{args.data.name}", tto, args.resolution)
+            for o in args.objects.split(",") if o.strip()]
     print(f"appended to {write_result('tto_fixed_point', {'set': overrides, 'tto': tto.to_dict(), 'rows': rows})}")
     return 0
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from tto_fixtures import EXAMPLE, Example, gt_prediction
+from tto_fixtures import EXAMPLE, Example, gt_prediction, stop_after
 
 from neumatex_core.capture import CaptureError, load_capture
 from neumatex_core.imageio import write_image
@@ -204,13 +204,7 @@ def test_exposure_fit_stops_and_resumes_bit_for_bit(example, truth_prediction, t
     whole = optimise(problem(), cfg)
     assert whole.exposure is not None and max(abs(math.log(e)) for e in whole.exposure) > 0.05  # they moved
     checkpoint = tmp_path / "checkpoint.pt"
-    calls = {"n": 0}
-
-    def stop_after_three() -> bool:
-        calls["n"] += 1
-        return calls["n"] > 3
-
-    first = optimise(problem(), cfg, should_stop=stop_after_three, checkpoint=checkpoint)
+    first = optimise(problem(), cfg, should_stop=stop_after(3), checkpoint=checkpoint)
     assert not first.finished and first.exposure is not None and first.exposure != whole.exposure
     second = optimise(problem(), cfg, checkpoint=checkpoint)
     assert second.finished and second.exposure == whole.exposure

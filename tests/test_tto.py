@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from tto_fixtures import Example, gbuffer_mse, load_example, random_prediction
+from tto_fixtures import Example, gbuffer_mse, load_example, random_prediction, stop_after
 
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.eval import GroundTruth, gbuffer_psnr, truth_lookup
@@ -285,11 +285,15 @@ def test_gradients_reach_only_the_triplane(example, truth_prediction):
     assert torch.equal(pred.triplane.planes, perturbed(truth_prediction, 0.1).triplane.planes)
 
 
-@pytest.mark.parametrize("estimator", ["path", "cached"])
-def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, tmp_path, estimator):
-    # cached: rebuilt at steps 0 and 4, so the stop after step 3 resumes inside the first cache's round
+@pytest.mark.parametrize("variant", [{"estimator": "path"}, {"estimator": "cached"},
+                                     {"optimizer": "gauss_newton", "train_decoder": True},
+                                     {"control_variate": "settle", "settle_fraction": 2 / 3, "settle_spp": 4,
+                                      "cv_spp": 4, "cv_refresh": 2, "train_decoder": True}])  # fmt: skip
+def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, tmp_path, variant):
+    # cached: rebuilt at steps 0 and 4, so the stop after step 3 resumes inside the first cache's round; the control
+    # variate's copies are made at steps 2 (the settling's first) and 4, so it resumes inside the first copy's round
     cfg = TTOConfig.preset("tiny", steps=6, pixels=64, spp=2, max_bounces=2, checkpoint_every=0, init="lmrm",
-                           estimator=estimator, cache_pixels=128, cache_every=4)  # fmt: skip
+                           cache_pixels=128, cache_every=4, **variant)  # fmt: skip
 
     def problem():
         return build_problem(cfg, example.mesh, example.envmap, example.photos, example.capture.tonemap,
@@ -297,13 +301,7 @@ def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, 
 
     whole = optimise(problem(), cfg)
     checkpoint = tmp_path / "checkpoint.pt"
-    calls = {"n": 0}
-
-    def stop_after_three() -> bool:
-        calls["n"] += 1
-        return calls["n"] > 3
-
-    first = optimise(problem(), cfg, should_stop=stop_after_three, checkpoint=checkpoint)
+    first = optimise(problem(), cfg, should_stop=stop_after(3), checkpoint=checkpoint)
     assert not first.finished and first.steps_done == 3 and checkpoint.is_file()
     second = optimise(problem(), cfg, checkpoint=checkpoint)
     assert second.finished and second.steps_done == 6
@@ -864,14 +862,8 @@ def test_iterate_averaging_returns_the_tails_mean_and_resumes(example, truth_pre
     mean = torch.stack(seen[4:]).mean(0)
     assert torch.allclose(whole.params.tensor, mean, atol=1e-6)
     assert not torch.allclose(whole.params.tensor, seen[-1], atol=1e-6)  # the iterates moved: a real average
-    calls = {"n": 0}
-
-    def stop_after_six() -> bool:
-        calls["n"] += 1
-        return calls["n"] > 6
-
     checkpoint = tmp_path / "checkpoint.pt"
-    first = optimise(problem(), cfg, should_stop=stop_after_six, checkpoint=checkpoint)
+    first = optimise(problem(), cfg, should_stop=stop_after(6), checkpoint=checkpoint)
     assert not first.finished and first.steps_done == 6
     second = optimise(problem(), cfg, checkpoint=checkpoint)
     assert torch.equal(second.params.tensor, whole.params.tensor)

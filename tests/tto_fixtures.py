@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,3 +73,15 @@ def gbuffer_mse(prediction_or_field: object, points: torch.Tensor, truth: torch.
     rho = float(((g[:, :3] - truth[:, :3]) ** 2).mean())
     lat = float((((g[:, 3:] - truth[:, 3:]) / 2) ** 2).mean())
     return rho, lat
+
+
+def stop_after(checks: int) -> Callable[[], bool]:
+    """A `should_stop` for `optimise` that says stop from its (checks + 1)-th call on: the run stops after `checks`
+    steps."""
+    calls = {"n": 0}
+
+    def should_stop() -> bool:
+        calls["n"] += 1
+        return calls["n"] > checks
+
+    return should_stop

@@ -217,6 +217,23 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_600_settle200_decdb_coarse8": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
                                                       "settle_photo_loss": "decorrelated_debiased",
                                                       "coarse_factor": 8},
+    # the default whose neural phase moves its planes by a damped Gauss-Newton step solved per texel over its
+    # channels (TTOConfig.optimizer "gauss_newton", gn_block; tto/gauss_newton.py) instead of Adam's normalised one:
+    # each texel moves by what its photo pixels' curvature says, not by about lr whatever its gradient's noise
+    # (design notes 50, 57); the diagonal form without the blocks
+    "pbr_start_default_gn_block": {**EXTRACTION_DEFAULT, "optimizer": "gauss_newton", "gn_block": True,
+                                   "gn_damping": 1.0, "gn_lr_scale": 0.3},
+    "pbr_start_default_gn_diag": {**EXTRACTION_DEFAULT, "optimizer": "gauss_newton", "gn_damping": 1.0,
+                                  "gn_lr_scale": 0.3},
+    # the default whose neural phases render through a control variate (TTOConfig.control_variate "all",
+    # tto/control_variate.py): each step's render less the same rays' render under a frozen copy of the field plus that
+    # copy's radiance of every photo pixel at 32 samples. From the truth it keeps 36.8 dB instead of 34.7 (design
+    # note 57)
+    "pbr_start_default_cv": {**EXTRACTION_DEFAULT, "control_variate": "all", "cv_spp": 32},
+    # ... without the settling phase (a remedy for the renders' noise, which the variate takes away): every neural step
+    # at the high rate and 8 spp
+    "pbr_start_default_cv_nosettle": {**EXTRACTION_DEFAULT, "control_variate": "all", "cv_spp": 32,
+                                      "settle_fraction": 0.0},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
     # 46: objects 4 and 6 moved by 1.2 dB when only the start's fit changed)

@@ -20,6 +20,10 @@ more bounces) and "tiny" (tests: seconds). The switches select the paper's varia
   radiance), so the render's Monte Carlo variance adds no gradient (tto/loss.py; measured worse on the benchmark:
   docs/design-notes.md, item 28), or "decorrelated_debiased" ("decorrelated" with each half less the tonemap's gap,
   estimated from its samples: least at a noise-free photo; item 53);
+- optimizer: "adam" (default) or "gauss_newton" (the field tensor's step from the photo and consistency terms'
+  curvature, tto/gauss_newton.py; measured no better: docs/design-notes.md, item 57); control_variate: "off"
+  (default), "settle" or "all" (renders through a frozen copy of the field with the same random numbers,
+  tto/control_variate.py; item 57);
 - basis: "" (the default neural basis) or the id of another installed basis (materials/data/bases/; with init
   "pbr" or "random" and reg "none", since the LMRM's latents are the default basis's: docs/design-notes.md, item 25).
 """
@@ -39,6 +43,8 @@ RegKind = Literal["uncertainty", "none", "oracle", "start"]
 ConsistencyKind = Literal["change", "value", "value_latent", "value_rho"]
 MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
+OptimizerKind = Literal["adam", "gauss_newton"]
+ControlVariateKind = Literal["off", "settle", "all"]
 PRESETS = ("tiny", "cpu", "gpu")
 BIG = 1 << 24
 # consistency_rho_value of the "uniform" variation (one material over the whole object): on the Cycles captures,
@@ -48,7 +54,8 @@ UNIFORM_RHO_VALUE = 3.0
 # The allowed values of the numeric fields (checked by TTOConfig.check; the job service's bounds).
 RANGES: dict[str, Range] = {
     "steps": Range(1, 100_000), "pixels": Range(1, 1 << 20), "spp": Range(1, 4096), "max_bounces": Range(1, 64),
-    "lr": Range(0, 100, lo_open=True), "lr_final": Range(0, 1, lo_open=True), "lambda_reg": Range(0, 1e6),
+    "lr": Range(0, 100, lo_open=True), "lr_final": Range(0, 1, lo_open=True), "lr_warmup": Range(0, 100_000),
+    "lambda_reg": Range(0, 1e6),
     "lambda_consistency": Range(0, 1e6), "consistency_sigma": Range(0, 100, lo_open=True),
     "consistency_rho_value": Range(0, 1e6), "consistency_latent_value": Range(0, 1e6), "lambda_smooth": Range(0, 1e6),
     "coarse_factor": Range(1, 64),
@@ -60,6 +67,9 @@ RANGES: dict[str, Range] = {
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "settle_fraction": Range(0, 1), "settle_spp": Range(1, 4096), "settle_lr": Range(0, 100, lo_open=True),
     "adam_beta1": Range(0, 0.9999), "adam_beta2": Range(0, 0.99999), "adam_eps": Range(0, 1),
+    "gn_lr_scale": Range(0, 100, lo_open=True), "gn_beta2": Range(0, 0.99999), "gn_damping": Range(0, 1e6),
+    "gn_max_step": Range(0, 100, lo_open=True), "gn_warmup": Range(0, 100_000), "cv_spp": Range(1, 4096),
+    "cv_refresh": Range(0, 100_000),
     "photo_weight_radius": Range(0, 64),
     "decoder_lr": Range(0, 100, lo_open=True), "exposure_lr": Range(0, 100, lo_open=True),
     "validation_photos": Range(1, 100_000), "select_margin_db": Range(-100, 100),
@@ -96,6 +106,10 @@ class TTOConfig:
     # lr measured on benchmark object 0, PathTrace after 400 steps: 0.02 21.8 dB, 0.08 23.1, 0.2 23.7, 0.5 23.8
     lr: float = 0.2
     lr_final: float = 0.1
+    # the rate ramps up linearly over the first lr_warmup steps (0: none): Adam's first steps move every number by
+    # about lr whatever its gradient (its second moment is then the mean of a few squares), so a start that is
+    # already good is kicked away before the moments mean anything (docs/design-notes.md item 57)
+    lr_warmup: int = 0
     lambda_reg: float = 0.02
     reg_points: int = 1024
     reg_pool: int = 1 << 15
@@ -150,6 +164,29 @@ class TTOConfig:
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
     adam_eps: float = 1e-8
+    # the field tensor's step: "adam", or "gauss_newton" (tto/gauss_newton.py: a damped fraction lr x gn_lr_scale of
+    # the diagonal Gauss-Newton step of the photo and consistency terms, its curvature estimated by one more backward
+    # pass a step, moving averages at adam_beta1 / gn_beta2; damping gn_damping x the mean curvature, each step
+    # clamped to gn_max_step, the rate ramped up over the first gn_warmup steps), so a texel that few photo pixels
+    # see is not walked by its noise at Adam's full step
+    # (docs/design-notes.md item 57). The neural phase's alone: the PBR phase is the baseline's own TTO. The decoder
+    # and the exposures keep Adam.
+    optimizer: OptimizerKind = "adam"
+    gn_lr_scale: float = 1.0
+    gn_beta2: float = 0.99
+    gn_damping: float = 0.01
+    gn_max_step: float = 0.2
+    gn_warmup: int = 20
+    # a control variate for the photo renders (tto/control_variate.py): each render is taken less the same rays'
+    # render under a frozen copy of the field and plus that copy's radiance of every photo pixel, rendered at cv_spp
+    # samples: the same expectation, much less fresh noise (docs/design-notes.md item 57). "settle": in the settling
+    # phase (its copy made at the phase's first step), "all": in every step (copies at step 0 and at the settling
+    # phase's first step); either way a new copy every cv_refresh steps after those (0: none)
+    control_variate: ControlVariateKind = "off"
+    cv_spp: int = 32
+    cv_refresh: int = 0
+    # the Gauss-Newton step solved per texel over its feature channels (which the decoder mixes) instead of per number
+    gn_block: bool = False
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # init "pbr" with train_decoder: whether the neural phase fine-tunes its decoder where it runs in a basis other
@@ -275,6 +312,13 @@ class TTOConfig:
         if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
             raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
                              f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")
+        if self.optimizer == "gauss_newton" and (self.estimator != "path" or self.field != "triplane"):
+            raise ValueError("TTO optimizer 'gauss_newton' probes the curvature through the traced photo batch of a "
+                             f"triplane: it needs estimator 'path' and field 'triplane', got {self.estimator!r}, "
+                             f"{self.field!r}")
+        if self.control_variate != "off" and self.estimator != "path":
+            raise ValueError("TTO control_variate renders the traced photo batch a second time: it needs estimator "
+                             f"'path', got {self.estimator!r}")
         if self.settle_fraction > 0 and self.estimator == "cached":
             raise ValueError("TTO settle_fraction changes the samples per pixel of the traced batches: it needs "
                              f"estimator 'path', got {self.estimator!r}")
@@ -311,6 +355,19 @@ class TTOConfig:
     def settle_start(self) -> int:
         """The first step (0-based) of the settling phase; `steps` when there is none."""
         return self.steps - round(self.settle_fraction * self.steps)
+
+    def cv_round(self, step: int) -> int:
+        """The first step of the control variate's reference that step `step` uses (-1: none): step 0 ("all") and the
+        settling phase's first step (0 without one), each followed by one every cv_refresh steps."""
+        if self.control_variate == "off":
+            return -1
+        settle = self.settle_start() if self.settle_fraction > 0 else 0
+        if step < settle and self.control_variate == "settle":
+            return -1
+        first = settle if step >= settle else 0
+        if self.cv_refresh == 0:
+            return first
+        return first + (step - first) // self.cv_refresh * self.cv_refresh
 
     def coarse_at(self, step: int) -> int:
         """The block size (texels a side) of step `step`'s move of the planes: coarse_factor before the settling."""

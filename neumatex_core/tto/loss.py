@@ -168,6 +168,19 @@ def consistency(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Ten
     rho_value / latent_value add, per pair and at that weight relative to the above, the mean over rho_d's 3
     channels / the latent's of (value_a - value_b)^2: that part ends alike while the rest only changes alike.
     Measured in docs/design-notes.md, items 34 and 35."""
+    parts, weight = _consistency_parts(gbuffer, anchor, first, second, sigma, of, rho_value, latent_value)
+    cost = (parts[0][0] ** 2).mean(1)
+    for d, part_weight in parts[1:]:
+        cost = cost + part_weight * (d**2).mean(1)
+    return (weight * cost).sum() / weight.sum().clamp_min(1e-12)
+
+
+def _consistency_parts(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor], anchor: Anchor,
+                       first: torch.Tensor, second: torch.Tensor, sigma: float, of: str, rho_value: float,
+                       latent_value: float) -> tuple[list[tuple[torch.Tensor, float]], torch.Tensor]:
+    """The pairs' differences that `consistency` compares, each with its weight relative to the first (the change or
+    value difference [n, K], then rho_d's [n, 3] and the latent's [n, K - 3] value differences where weighed), and the
+    pairs' weights [n]."""
     both = torch.cat([first, second])
     uv = None if anchor.uv is None else anchor.uv[both]
     value = gbuffer(anchor.points[both], uv)
@@ -179,9 +192,30 @@ def consistency(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Ten
     da, db = (value if of == "value" else change).split(first.shape[0])
     gap = anchor.target[first] - anchor.target[second]
     weight = torch.exp(-(gap * gap).sum(1) / (2 * sigma * sigma))
-    cost = ((da - db) ** 2).mean(1)
+    parts = [(da - db, 1.0)]
     for part, weight_of_part in ((slice(0, 3), rho_value), (slice(3, None), latent_value)):
         if weight_of_part > 0:
             va, vb = value[:, part].split(first.shape[0])
-            cost = cost + weight_of_part * ((va - vb) ** 2).mean(1)
-    return (weight * cost).sum() / weight.sum().clamp_min(1e-12)
+            parts.append((va - vb, weight_of_part))
+    return parts, weight
+
+
+def consistency_residuals(gbuffer: Callable[[torch.Tensor, torch.Tensor | None], torch.Tensor], anchor: Anchor,
+                          first: torch.Tensor, second: torch.Tensor, sigma: float, of: str = "change",
+                          rho_value: float = 0.0, latent_value: float = 0.0) -> list[torch.Tensor]:
+    """Residuals r whose sum of squares is `consistency` (same arguments): each difference of the pairs scaled by
+    sqrt(part weight x pair weight / (sum of pair weights x channels)); the Gauss-Newton probe's input
+    (tto/gauss_newton.py)."""
+    parts, weight = _consistency_parts(gbuffer, anchor, first, second, sigma, of, rho_value, latent_value)
+    share = weight / weight.sum().clamp_min(1e-12)
+    return [d * (share * part_weight / d.shape[1]).sqrt().unsqueeze(1) for d, part_weight in parts]
+
+
+def photo_residuals(radiance: torch.Tensor, target: torch.Tensor, spp: int, tonemap: Tonemap,
+                    scale: torch.Tensor | None = None) -> torch.Tensor:
+    """[n, 3] residuals whose sum of squares is the L2 photometric loss of `photometric_loss` (same arguments):
+    (T(scale * pixel mean) - target) / sqrt(3 n), differentiable; the Gauss-Newton probe's input for every photo loss
+    kind (the others are the L2 without its noise terms, whose curvature the L2's approximates)."""
+    s = 1.0 if scale is None else scale.reshape(-1, 1)
+    error = tonemap.apply(radiance.reshape(-1, spp, 3).mean(1) * s) - target
+    return error / error.numel() ** 0.5

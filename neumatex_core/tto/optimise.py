@@ -40,11 +40,15 @@ from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
 from neumatex_core.render.transport_cache import TransportCache, TransportCacheConfig
 from neumatex_core.tto.config import TTOConfig
+from neumatex_core.tto.control_variate import ControlVariate, clone_generator
 from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.gauss_newton import DiagonalGaussNewton, sign_probe
 from neumatex_core.tto.loss import (
     Anchor,
     consistency,
+    consistency_residuals,
     oracle_weights,
+    photo_residuals,
     photometric_loss,
     regulariser,
     uncertainty_weights,
@@ -225,15 +229,31 @@ def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
 
 
 def make_optimizer(params: Parametrisation, config: TTOConfig,
-                   exposure: ExposureFit | None = None) -> torch.optim.Adam:
+                   exposure: ExposureFit | None = None) -> torch.optim.Optimizer:
     """Adam over the field's tensor (group 0), with train_decoder its decoder (lr x decoder_lr) and with `exposure`
-    the photos' log-scales (at exposure_lr, on the same cosine schedule)."""
-    groups: list[dict[str, Any]] = [{"params": [params.tensor], "lr_scale": 1.0}]
+    the photos' log-scales (at exposure_lr, on the same cosine schedule). With config.optimizer "gauss_newton" the
+    field's tensor takes diagonal Gauss-Newton steps at lr x gn_lr_scale instead (tto/gauss_newton.py), the other
+    groups the same Adam steps."""
+    gauss_newton = config.optimizer == "gauss_newton"
+    groups: list[dict[str, Any]] = [{"params": [params.tensor],
+                                     "lr_scale": config.gn_lr_scale if gauss_newton else 1.0}]
     if params.decoder_parameters():
         groups.append({"params": params.decoder_parameters(), "lr_scale": config.decoder_lr})
     if exposure is not None:
         groups.append({"params": [exposure.log_scale], "lr_scale": config.exposure_lr / config.lr})
-    return torch.optim.Adam(groups, lr=config.lr, betas=(config.adam_beta1, config.adam_beta2), eps=config.adam_eps)
+    betas = (config.adam_beta1, config.adam_beta2)
+    if not gauss_newton:
+        return torch.optim.Adam(groups, lr=config.lr, betas=betas, eps=config.adam_eps)
+    groups[0].update(curvature=True, betas=(config.adam_beta1, config.gn_beta2),
+                     block_dim=params.channel_dim if config.gn_block else None)
+    return DiagonalGaussNewton(groups, lr=config.lr, betas=betas, eps=config.adam_eps, damping=config.gn_damping,
+                               max_step=config.gn_max_step, warmup=config.gn_warmup)
+
+
+def curvature_generator(config: TTOConfig, step: int, device: torch.device) -> torch.Generator:
+    """The generator of step `step`'s Gauss-Newton probe signs: apart from `step_generator`, so the pixels, paths
+    and anchor pairs are those of an Adam run with the same seed."""
+    return torch.Generator(device=device).manual_seed(config.seed * 1_000_003 + step + 500_000_003)
 
 
 class IterateAverage:
@@ -257,13 +277,15 @@ class IterateAverage:
 
 def learning_rate(config: TTOConfig, step: int) -> float:
     """Cosine decay from lr to lr * lr_final over the steps; with settle_fraction, over the steps before the settling
-    phase, which has its own cosine from lr * settle_lr to lr * settle_lr * lr_final."""
+    phase, which has its own cosine from lr * settle_lr to lr * settle_lr * lr_final; with lr_warmup, times a linear
+    ramp from 1 / lr_warmup to 1 over the first lr_warmup steps."""
     start = config.settle_start()
     if step < start:
         t, top = step / max(start, 1), config.lr
     else:
         t, top = min((step - start) / max(config.steps - start, 1), 1.0), config.lr * config.settle_lr
-    return top * (config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t)))
+    ramp = min(1.0, (step + 1) / config.lr_warmup) if config.lr_warmup > 0 else 1.0
+    return ramp * top * (config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
 def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.Generator:
@@ -274,7 +296,7 @@ def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.
 def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametrisation,
                      opt: torch.optim.Optimizer, history: list[dict[str, float]],
                      cache_tensor: torch.Tensor | None, exposure: ExposureFit | None = None,
-                     average: torch.Tensor | None = None) -> None:
+                     average: torch.Tensor | None = None, cv_state: dict[str, Any] | None = None) -> None:
     trained = params.trained_decoder()  # a frozen decoder is not the run's own: nothing to keep
     with replaced_atomically(path) as tmp:
         torch.save({"format": CHECKPOINT_FORMAT, "config": config.to_dict(), "step": step,
@@ -282,12 +304,13 @@ def _save_checkpoint(path: Path, config: TTOConfig, step: int, params: Parametri
                     "decoder": None if trained is None else trained.state_dict(),
                     "cache_tensor": None if cache_tensor is None else cache_tensor.cpu(),
                     "exposure": None if exposure is None else exposure.log_scale.detach().cpu(),
-                    "average": None if average is None else average.cpu()}, tmp)  # fmt: skip
+                    "average": None if average is None else average.cpu(),
+                    "control_variate": cv_state}, tmp)  # fmt: skip
 
 
 def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation, opt: torch.optim.Optimizer,
                      exposure: ExposureFit | None = None, average: IterateAverage | None = None,
-                     ) -> tuple[int, list[dict[str, float]], torch.Tensor | None]:
+                     ) -> tuple[int, list[dict[str, float]], torch.Tensor | None, dict[str, Any] | None]:
     try:
         state: dict[str, Any] = torch.load(path, map_location=params.tensor.device, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - a torn or foreign file: start over rather than fail
@@ -307,7 +330,8 @@ def _load_checkpoint(path: Path, config: TTOConfig, params: Parametrisation, opt
     if average is not None and state.get("average") is not None:
         average.mean = state["average"].to(params.tensor)
     cache_tensor = state.get("cache_tensor")
-    return int(state["step"]), list(state["history"]), None if cache_tensor is None else cache_tensor.to(params.tensor)
+    return (int(state["step"]), list(state["history"]),
+            None if cache_tensor is None else cache_tensor.to(params.tensor), state.get("control_variate"))
 
 
 class CachedPhotos:
@@ -353,6 +377,27 @@ class CachedPhotos:
                                 weight_target)  # fmt: skip
 
 
+def _control_variate(problem: TTOProblem, config: TTOConfig, scene: Scene, tracer: PathTracer,
+                     state: dict[str, Any]) -> ControlVariate:
+    """The control variate of round state["round"] (tto/control_variate.py): its reference is the field with
+    state's tensor and trained decoder (the field at that round's first step, kept in the checkpoint), its radiance of
+    every photo pixel rendered with a generator of (config.seed, round)."""
+    params = problem.params
+    trained = params.trained_decoder()
+    live_tensor = params.tensor.detach().clone()
+    live_decoder = None if trained is None else copy.deepcopy(trained.state_dict())
+    g = torch.Generator(device=problem.device).manual_seed(config.seed * 1_000_003 + 7_919 * (state["round"] + 1) + 3)
+    with torch.no_grad():
+        params.tensor.copy_(state["tensor"].to(params.tensor))
+        if trained is not None and state["decoder"] is not None:
+            trained.load_state_dict(state["decoder"])
+        variate = ControlVariate(params, scene, problem.photos, tracer, config.cv_spp, g)
+        params.tensor.copy_(live_tensor)
+        if trained is not None and live_decoder is not None:
+            trained.load_state_dict(live_decoder)
+    return variate
+
+
 def photo_weights(problem: TTOProblem, config: TTOConfig) -> torch.Tensor | None:
     """[M, 3] display values at which the loss weighs each foreground pixel of the photos (None: its own)."""
     if "linear_decorrelated" not in (config.photo_loss, config.settle_photo_loss) or config.photo_weight_radius <= 0:
@@ -370,10 +415,11 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     opt = make_optimizer(params, config, exposure)
     step, history = 0, list[dict[str, float]]()
     cache_tensor: torch.Tensor | None = None
+    cv_state: dict[str, Any] | None = None  # the control variate's reference: its tensor and trained decoder
     average = IterateAverage(config) if config.average_tail > 0 else None
     origin = params.tensor.detach().clone() if config.lambda_smooth > 0 else None  # before a checkpoint's tensor
     if checkpoint is not None and checkpoint.is_file():
-        step, history, cache_tensor = _load_checkpoint(checkpoint, config, params, opt, exposure, average)
+        step, history, cache_tensor, cv_state = _load_checkpoint(checkpoint, config, params, opt, exposure, average)
     scene = Scene(problem.mesh, problem.envmap, params.field(), device=problem.device)
     tracer = PathTracer(PathTracerConfig(max_bounces=config.max_bounces, rr_depth=max(config.max_bounces, 1),
                                          spp=config.spp))  # fmt: skip
@@ -382,15 +428,17 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     if cached is not None and step % config.cache_every != 0:  # resumed inside a round: its cache again
         cached.build(step - step % config.cache_every, params.tensor if cache_tensor is None else cache_tensor)
     anchor = problem.anchor
+    variate: ControlVariate | None = None
     while step < config.steps:
         if should_stop is not None and should_stop():
             if checkpoint is not None:
                 _save_checkpoint(checkpoint, config, step, params, opt, history,
                                  None if cached is None else cached.tensor_at_build, exposure,
-                                 None if average is None else average.mean)  # fmt: skip
+                                 None if average is None else average.mean, cv_state)  # fmt: skip
             return TTOResult(params, history, step, False, time.perf_counter() - t0, problem.mesh,
                              None if exposure is None else exposure.values())  # fmt: skip
         g = step_generator(config, step, problem.device)
+        residuals: list[torch.Tensor] = []  # with the Gauss-Newton step: those whose curvature it takes
         lr = learning_rate(config, step)
         for group in opt.param_groups:
             group["lr"] = lr * group["lr_scale"]
@@ -401,11 +449,23 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         else:
             pixels, spp = config.batch_at(step)
             batch = problem.photos.batch(pixels, spp, g)
+            if (cv_at := config.cv_round(step)) >= 0 and (variate is None or cv_state is None
+                                                          or cv_state["round"] != cv_at):  # fmt: skip
+                if cv_state is None or cv_state["round"] != cv_at:  # a new round: its reference is this step's field
+                    trained = params.trained_decoder()
+                    cv_state = {"round": cv_at, "tensor": params.tensor.detach().cpu().clone(),
+                                "decoder": None if trained is None else copy.deepcopy(trained.state_dict())}
+                variate = _control_variate(problem, config, scene, tracer, cv_state)
+            twin = clone_generator(g) if cv_at >= 0 else None
             radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
+            if variate is not None and twin is not None:
+                radiance = variate.radiance(radiance, batch.origins, batch.directions, batch.index, spp, twin)
             scale = problem.photo_scale(batch.frame, batch.exposure)
             weight_target = None if weights is None else weights[batch.index]
             photo, mse_t = photometric_loss(radiance, batch.target, spp, problem.tonemap, scale, config.loss_at(step),
                                             weight_target)  # fmt: skip
+            if isinstance(opt, DiagonalGaussNewton):
+                residuals.append(photo_residuals(radiance, batch.target, spp, problem.tonemap, scale))
         loss = photo
         reg = torch.zeros((), device=problem.device)
         cons: torch.Tensor | None = None
@@ -417,16 +477,22 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
                 loss = photo + config.lambda_reg * reg
             if config.lambda_consistency > 0:  # drawn after idx, so runs without it keep their random numbers
                 other = torch.randint(0, n, idx.shape, generator=g, device=problem.device)
-                cons = consistency(params.gbuffer, anchor, idx, other, config.consistency_sigma,
-                                   config.consistency_of, config.consistency_rho_value,
-                                   config.consistency_latent_value)
+                cons_args = (params.gbuffer, anchor, idx, other, config.consistency_sigma, config.consistency_of,
+                             config.consistency_rho_value, config.consistency_latent_value)
+                cons = consistency(*cons_args)
                 loss = loss + config.lambda_consistency * cons
+                if isinstance(opt, DiagonalGaussNewton):
+                    residuals += [r * config.lambda_consistency**0.5 for r in consistency_residuals(*cons_args)]
         smooth: torch.Tensor | None = None
         if origin is not None:
             smooth = params.texel_variation(origin)
             loss = loss + config.lambda_smooth * smooth
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        loss.backward(retain_graph=bool(residuals))
+        if isinstance(opt, DiagonalGaussNewton):
+            probe = sign_probe(residuals, curvature_generator(config, step, problem.device))
+            opt.fold_curvature(torch.autograd.grad(probe, [params.tensor], allow_unused=True))
+            del probe, residuals
         if (factor := config.coarse_at(step)) > 1:
             params.coarsen_gradient(factor)
         opt.step()
@@ -451,7 +517,7 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         if checkpoint is not None and config.checkpoint_every and step % config.checkpoint_every == 0:
             _save_checkpoint(checkpoint, config, step, params, opt, history,
                              None if cached is None else cached.tensor_at_build, exposure,
-                             None if average is None else average.mean)  # fmt: skip
+                             None if average is None else average.mean, cv_state)  # fmt: skip
     if average is not None and average.mean is not None:  # the result is the tail's mean iterate
         with torch.no_grad():
             params.tensor.copy_(average.mean)
@@ -459,6 +525,6 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
     if checkpoint is not None:
         _save_checkpoint(checkpoint, config, step, params, opt, history,
                          None if cached is None else cached.tensor_at_build, exposure,
-                         None if average is None else average.mean)  # fmt: skip
+                         None if average is None else average.mean, cv_state)  # fmt: skip
     return TTOResult(params, history, step, True, time.perf_counter() - t0, problem.mesh,
                      None if exposure is None else exposure.values())  # fmt: skip

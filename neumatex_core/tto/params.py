@@ -53,6 +53,7 @@ class Parametrisation(ABC):
 
     tensor: torch.Tensor
     decoder: torch.nn.Module | None = None
+    channel_dim: int = 1  # the tensor's dimension of a texel's channels (a triplane's planes [3, C, R, R])
 
     @abstractmethod
     def field(self) -> MaterialField: ...
@@ -103,6 +104,8 @@ class NeuralTriplane(Parametrisation):
 
 class _UVTexture(Parametrisation):
     """A texture [H, W, C] optimised in place (a copy of the start); G-buffers are read at the anchor points' uvs."""
+
+    channel_dim = 2
 
     def __init__(self, texture: torch.Tensor) -> None:
         self.tensor = texture.detach().clone().requires_grad_(True)
