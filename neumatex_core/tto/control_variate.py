@@ -39,13 +39,13 @@ def clone_generator(generator: torch.Generator) -> torch.Generator:
 
 
 class ControlVariate:
-    """The frozen reference material theta_0 (a copy of the parametrisation, its own field in a scene sharing the
-    main scene's mesh, BVH and map) and its radiance R [P, 3] (linear, before exposure) of the photos' P foreground
-    pixels, rendered at `spp` samples by `tracer` with `generator`."""
+    """The frozen reference material theta_0 (`params`: a copy of the TTO's parametrisation that this object owns and
+    freezes; its field in a scene sharing the main scene's mesh, BVH and map) and its radiance R [P, 3] (linear,
+    before exposure) of the photos' P foreground pixels, rendered at `spp` samples by `tracer` with `generator`."""
 
     def __init__(self, params: Parametrisation, scene: Scene, photos: PhotoSet, tracer: PathTracer, spp: int,
                  generator: torch.Generator) -> None:
-        self.params = copy.deepcopy(params)
+        self.params = params
         self.params.tensor.requires_grad_(False)
         for p in self.params.decoder_parameters():
             p.requires_grad_(False)

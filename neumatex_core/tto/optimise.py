@@ -382,20 +382,14 @@ def _control_variate(problem: TTOProblem, config: TTOConfig, scene: Scene, trace
     """The control variate of round state["round"] (tto/control_variate.py): its reference is the field with
     state's tensor and trained decoder (the field at that round's first step, kept in the checkpoint), its radiance of
     every photo pixel rendered with a generator of (config.seed, round)."""
-    params = problem.params
-    trained = params.trained_decoder()
-    live_tensor = params.tensor.detach().clone()
-    live_decoder = None if trained is None else copy.deepcopy(trained.state_dict())
-    g = torch.Generator(device=problem.device).manual_seed(config.seed * 1_000_003 + 7_919 * (state["round"] + 1) + 3)
+    frozen = copy.deepcopy(problem.params)  # the live parametrisation is not touched
+    trained = frozen.trained_decoder()
     with torch.no_grad():
-        params.tensor.copy_(state["tensor"].to(params.tensor))
+        frozen.tensor.copy_(state["tensor"].to(frozen.tensor))
         if trained is not None and state["decoder"] is not None:
             trained.load_state_dict(state["decoder"])
-        variate = ControlVariate(params, scene, problem.photos, tracer, config.cv_spp, g)
-        params.tensor.copy_(live_tensor)
-        if trained is not None and live_decoder is not None:
-            trained.load_state_dict(live_decoder)
-    return variate
+    g = torch.Generator(device=problem.device).manual_seed(config.seed * 1_000_003 + 7_919 * (state["round"] + 1) + 3)
+    return ControlVariate(frozen, scene, problem.photos, tracer, config.cv_spp, g)
 
 
 def photo_weights(problem: TTOProblem, config: TTOConfig) -> torch.Tensor | None:
@@ -449,12 +443,14 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
         else:
             pixels, spp = config.batch_at(step)
             batch = problem.photos.batch(pixels, spp, g)
-            if (cv_at := config.cv_round(step)) >= 0 and (variate is None or cv_state is None
-                                                          or cv_state["round"] != cv_at):  # fmt: skip
-                if cv_state is None or cv_state["round"] != cv_at:  # a new round: its reference is this step's field
-                    trained = params.trained_decoder()
-                    cv_state = {"round": cv_at, "tensor": params.tensor.detach().cpu().clone(),
-                                "decoder": None if trained is None else copy.deepcopy(trained.state_dict())}
+            cv_at = config.cv_round(step)
+            if cv_at >= 0 and (cv_state is None or cv_state["round"] != cv_at):  # a new round: this step's field
+                trained = params.trained_decoder()
+                cv_state = {"round": cv_at, "tensor": params.tensor.detach().cpu().clone(),
+                            "decoder": None if trained is None else copy.deepcopy(trained.state_dict())}
+                variate = None
+            if cv_at >= 0 and variate is None:  # a new round, or resumed inside one (cv_state from the checkpoint)
+                assert cv_state is not None
                 variate = _control_variate(problem, config, scene, tracer, cv_state)
             twin = clone_generator(g) if cv_at >= 0 else None
             radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)

@@ -239,8 +239,7 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
     pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="",
                          select_anchor=False, select_uniform=False, alternative_basis="", settle_fraction=0.0,
                          lambda_smooth=0.0, coarse_factor=1, optimizer="adam", control_variate="off", lr_warmup=0,
-                         adam_beta1=TTOConfig.adam_beta1,
-                         adam_beta2=TTOConfig.adam_beta2, adam_eps=TTOConfig.adam_eps)
+                         adam_beta1=TTOConfig.adam_beta1, adam_beta2=TTOConfig.adam_beta2, adam_eps=TTOConfig.adam_eps)
     pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     return optimise(pbr_problem, pbr_config, progress, should_stop, checkpoint)
 
