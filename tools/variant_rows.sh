@@ -1,0 +1,27 @@
+#!/bin/bash
+# One eval variant's clean, paired rows on benchmark objects that a fresh machine lacks the data for
+# (docs/design-notes.md item 58): per object, synthesise it (`neumatex synth --shard I/40`, bit for bit the data
+# the stored rows were made on), render its references, run the variant (bench/variants_clean.py), each step
+# skipped or resumed where already done. Run two side by side on two cores, e.g.
+#   nohup tools/variant_rows.sh pbr_start_default_settle_decdb 18 2 39 > runs/rows-a.log 2>&1 &
+#   nohup tools/variant_rows.sh pbr_start_default_settle_decdb 19 2 39 > runs/rows-b.log 2>&1 &
+# usage: tools/variant_rows.sh VARIANT FIRST STEP LAST
+set -u
+cd "$(dirname "$0")/.."
+export NEUMATEX_SHARED=${NEUMATEX_SHARED:-$(cd .. && pwd)/shared} OMP_NUM_THREADS=1
+variant=$1
+mkdir -p data/benchmark-test
+for ((i=$2; i<=$4; i+=$3)); do
+  id=$(printf "test-%06d" "$i")
+  echo "$(date -u +%T) $id synth"
+  if [ ! -f "data/benchmark-test/$id/transforms.json" ]; then
+    # one synth at a time: shards of one split share its manifest
+    flock data/.synth.lock .venv/bin/neumatex synth --split test --n 40 --out data/benchmark-test --layered \
+      --shard "$i/40" --workers 1 || { echo "$id: synth failed"; continue; }
+  fi
+  echo "$(date -u +%T) $id references"
+  .venv/bin/neumatex references data/benchmark-test --objects "$id" --no-progress || { echo "$id: references failed"; continue; }
+  echo "$(date -u +%T) $id variant"
+  .venv/bin/python bench/variants_clean.py --variants "$variant" --objects "$id" --workers 1 --work "runs/rows-$variant-$i"
+  echo "$(date -u +%T) $id done"
+done
