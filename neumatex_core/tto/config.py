@@ -177,6 +177,8 @@ class TTOConfig:
     gn_damping: float = 0.01
     gn_max_step: float = 0.2
     gn_warmup: int = 20
+    # the Gauss-Newton step solved per texel over its feature channels (which the decoder mixes) instead of per number
+    gn_block: bool = False
     # a control variate for the photo renders (tto/control_variate.py): each render is taken less the same rays'
     # render under a frozen copy of the field and plus that copy's radiance of every photo pixel, rendered at cv_spp
     # samples: the same expectation, much less fresh noise (docs/design-notes.md item 57). "settle": in the settling
@@ -185,8 +187,6 @@ class TTOConfig:
     control_variate: ControlVariateKind = "off"
     cv_spp: int = 32
     cv_refresh: int = 0
-    # the Gauss-Newton step solved per texel over its feature channels (which the decoder mixes) instead of per number
-    gn_block: bool = False
     train_decoder: bool = False
     decoder_lr: float = 0.1
     # init "pbr" with train_decoder: whether the neural phase fine-tunes its decoder where it runs in a basis other
