@@ -25,6 +25,14 @@ objects that only a neighbouring variant was run on.
 `--since ISO_TIME` (UTC): rows written before it neither count as done nor are summarised, so a baseline can be run
 again beside a variant on one machine (results move between machines: docs/design-notes.md item 45).
 
+`--to-eval OUT` writes each of --variants' rows (the latest per object) as results of the evaluation in OUT
+(`OUT/results/<object>/<variant>.json`, with a "source" naming this file, the row's time and commit), so that
+`neumatex eval --out OUT --report-only` pages them, e.g. the default's table once its variant has rows on every
+object (docs/design-notes.md items 51 and 59):
+
+    .venv/bin/python bench/variants_clean.py --to-eval bench/results/eval-clean \\
+        --variants pbr_start_default_settle_decdb
+
 `--by-family BASELINE` (with --summarise) also prints each variant minus BASELINE per material family (the families
 of an object's regions, from its meta.json; an object with two counts in both rows) and over all objects, with the
 number of objects on which the variant is ahead.
@@ -45,12 +53,14 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import argument_parser, write_result  # noqa: E402
 
+from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
 from neumatex_core.eval.suite import (  # noqa: E402
     Results,
     object_families,
     paired_difference,
     paired_values,
+    result_path,
     select_objects,
 )
 from neumatex_core.eval.variants import VARIANTS, variant_config  # noqa: E402
@@ -203,6 +213,27 @@ def summarise(variants: list[str], against: list[str], fill_from: list[str] | No
     return 0
 
 
+def to_eval(variants: list[str], out: Path) -> int:
+    """Write the latest row per (object, variant) of this file as the evaluation's result in `out` (the fields
+    `evaluate_variant` stores: scores, choices, object, variant) with its "source"; print how many per variant."""
+    own = RESULTS / "variants_clean.jsonl"
+    latest: dict[tuple[str, str], dict[str, Any]] = {}
+    for line in own.read_text().splitlines() if own.is_file() else []:
+        row = json.loads(line)
+        if row["variant"] in variants:
+            latest[(row["variant"], row["object"])] = row
+    for variant in variants:
+        rows = [r for (v, _), r in sorted(latest.items()) if v == variant]
+        for row in rows:
+            result = {**row["scores"], **row.get("choice", {}), "object": row["object"], "variant": variant,
+                      "source": f"bench/results/variants_clean.jsonl {row['timestamp']} (commit {row['commit'][:7]})"}
+            path = result_path(out, row["object"], variant)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(path, result)
+        print(f"{variant}: {len(rows)} objects written to {out}/results")
+    return 0
+
+
 def main() -> int:
     parser = argument_parser(__doc__)
     parser.add_argument("--data", default="data/benchmark-test")
@@ -219,8 +250,12 @@ def main() -> int:
                         "in where they choose the same basis (see above)")
     parser.add_argument("--by-family", default="", metavar="BASELINE", help="with --summarise: also each variant - "
                         "BASELINE per material family of the objects (their meta.json), and on how many it is ahead")
+    parser.add_argument("--to-eval", default="", metavar="OUT", help="write --variants' rows as results of the "
+                        "evaluation in OUT (for `neumatex eval --out OUT --report-only`) and stop")
     args = parser.parse_args()
     variants, against = args.variants.split(","), args.against.split(",")
+    if args.to_eval:
+        return to_eval(variants, Path(args.to_eval))
     if args.summarise:
         return summarise(variants, against, [v for v in args.fill_from.split(",") if v],
                          (Path(args.data), args.by_family) if args.by_family else None, args.since)

@@ -303,6 +303,13 @@ def test_eval_suite_scores_tables_resumes_and_writes_the_results_page(tmp_path, 
     assert report["doc"] == doc2 and "Table 3" in doc2.read_text() and "Table 2" not in doc2.read_text()
     assert "--preset tiny" in doc2.read_text() and "--report-only" not in doc2.read_text()
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "eval" / "results").rglob("*.json")} == stamps
+    # ... and with the split gone (a fresh machine): the objects and their families come from eval.json
+    data.rename(tmp_path / "split-elsewhere")
+    doc3 = tmp_path / "docs3" / "results.md"
+    report = run_eval(EvalConfig(out=str(tmp_path / "eval"), doc=str(doc3), figures=1, report_only=True,
+                                 progress=False))  # fmt: skip
+    assert report["objects"] == 1 and "| dusty | 1 |" in doc3.read_text() and "| fuzzy | 1 |" in doc3.read_text()
+    (tmp_path / "split-elsewhere").rename(data)
     with pytest.raises(ValueError, match="no stored evaluation"):
         run_eval(EvalConfig(out=str(tmp_path / "nothing"), report_only=True, progress=False))
     with pytest.raises(ValueError, match="unknown table"):

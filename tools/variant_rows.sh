@@ -2,7 +2,8 @@
 # One eval variant's clean, paired rows on benchmark objects that a fresh machine lacks the data for
 # (docs/design-notes.md item 58): per object, synthesise it (`neumatex synth --shard I/40`, bit for bit the data
 # the stored rows were made on), render its references, run the variant (bench/variants_clean.py), each step
-# skipped or resumed where already done. Run two side by side on two cores, e.g.
+# skipped or resumed where already done; an object whose row the variant already has is skipped whole (no data
+# made for it). Run two side by side on two cores, e.g.
 #   nohup tools/variant_rows.sh pbr_start_default_settle_decdb 18 2 39 > runs/rows-a.log 2>&1 &
 #   nohup tools/variant_rows.sh pbr_start_default_settle_decdb 19 2 39 > runs/rows-b.log 2>&1 &
 # usage: tools/variant_rows.sh VARIANT FIRST STEP LAST
@@ -11,8 +12,12 @@ cd "$(dirname "$0")/.."
 export NEUMATEX_SHARED=${NEUMATEX_SHARED:-$(cd .. && pwd)/shared} OMP_NUM_THREADS=1
 variant=$1
 mkdir -p data/benchmark-test
+has_row() {  # whether bench/results/variants_clean.jsonl already holds the variant's row on object $1
+  grep -F "\"object\": \"$1\"" bench/results/variants_clean.jsonl 2>/dev/null | grep -qF "\"variant\": \"$variant\""
+}
 for ((i=$2; i<=$4; i+=$3)); do
   id=$(printf "test-%06d" "$i")
+  if has_row "$id"; then echo "$(date -u +%T) $id already has a row"; continue; fi
   echo "$(date -u +%T) $id synth"
   if [ ! -f "data/benchmark-test/$id/transforms.json" ]; then
     # one synth at a time: shards of one split share its manifest

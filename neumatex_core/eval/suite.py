@@ -259,7 +259,8 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
         keep = {"out": cfg.out, "doc": cfg.doc, "figures": cfg.figures, "report_only": True}
         cfg = EvalConfig(**{**{k: v for k, v in settings.items() if k in EvalConfig.__dataclass_fields__}, **keep})
     data, out = Path(cfg.data), Path(cfg.out)
-    objects = select_objects(data, cfg.objects)
+    # --report-only pages the stored run's objects, so the page can be written again where the split is not on disk
+    objects = stored_objects(out) if cfg.report_only else select_objects(data, cfg.objects)
     tables = [t.strip() for t in cfg.tables.split(",") if t.strip()]
     canon = distinct_variants(tables)
     runs = list(dict.fromkeys(canon.values())) + [TRUTH]
@@ -273,7 +274,8 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
     out.mkdir(parents=True, exist_ok=True)
     if not cfg.report_only:
         (out / "eval.json").write_text(json.dumps({"config": cfg.__dict__, "extract": config.to_dict(),
-                                                   "objects": objects, "runs": runs}, indent=1))  # fmt: skip
+                                                   "objects": objects, "runs": runs,
+                                                   "object_info": object_info(data, objects)}, indent=1))  # fmt: skip
     figure_objects = set(objects[:: max(1, len(objects) // max(1, cfg.figures))][: cfg.figures])
     total = len(objects) * len(runs)
     finished = _stored_pairs(out, objects, runs)
@@ -473,17 +475,48 @@ def targets(res: Results) -> list[tuple[str, bool | None, str]]:
     return checks
 
 
-def object_families(data: Path, objects: list[str]) -> dict[str, list[str]]:
-    """object -> the material families of its regions (from its meta.json), for the objects that record them."""
+def object_families(data: Path, objects: list[str], known: dict[str, Any] | None = None) -> dict[str, list[str]]:
+    """object -> the material families of its regions (from its meta.json, else from `known`: the stored run's
+    `object_info`), for the objects that record them."""
     found: dict[str, list[str]] = {}
     for obj in objects:
         meta = data / obj / "meta.json"
         if meta.is_file():
             regions = json.loads(meta.read_text()).get("spec", {}).get("material", {}).get("regions", [])
             families = sorted({r["family"] for r in regions if "family" in r})
-            if families:
-                found[obj] = families
+        else:
+            families = list((known or {}).get(obj, {}).get("families", []))
+        if families:
+            found[obj] = families
     return found
+
+
+def reference_spp(data: Path, obj: str) -> int | None:
+    """The samples per pixel of each half of the object's references (`neumatex references`), None without them."""
+    meta = data / obj / "references" / "meta.json"
+    return int(json.loads(meta.read_text())["settings"]["spp_half"]) if meta.is_file() else None
+
+
+def object_info(data: Path, objects: list[str]) -> dict[str, dict[str, Any]]:
+    """What the results page reads from the split beyond the stored results, per object: its material families and
+    its references' spp. eval.json keeps it, so `--report-only` writes the same page without the split on disk."""
+    families = object_families(data, objects)
+    return {o: {"families": families.get(o, []), "reference_spp_half": reference_spp(data, o)} for o in objects}
+
+
+def stored_objects(out: Path) -> list[str]:
+    """The objects of the stored evaluation in `out` (its eval.json)."""
+    stored = out / "eval.json"
+    objects = json.loads(stored.read_text()).get("objects") if stored.is_file() else None
+    if not objects:
+        raise ValueError(f"{stored}: no stored evaluation with its objects to report on (run `neumatex eval` first)")
+    return list(objects)
+
+
+def stored_object_info(out: Path) -> dict[str, Any]:
+    """The stored evaluation's `object_info` ({} when it has none or there is no eval.json)."""
+    stored = out / "eval.json"
+    return dict(json.loads(stored.read_text()).get("object_info", {})) if stored.is_file() else {}
 
 
 def family_lines(res: Results, families: dict[str, list[str]], variant: str = "ours", name: str = "ours") -> list[str]:
@@ -593,7 +626,9 @@ def figure_grid(cfg: EvalConfig, objects: list[str], target: Path) -> bool:
 
     out, data = Path(cfg.out), Path(cfg.data)
     tiles: list[np.ndarray] = []
-    shown = [o for o in objects if all((out / "figures" / o / v / "render.png").is_file() for v in FIGURE_VARIANTS)]
+    # (an object whose capture is not on disk, e.g. a page written again elsewhere with --report-only, is left out)
+    shown = [o for o in objects if all((out / "figures" / o / v / "render.png").is_file() for v in FIGURE_VARIANTS)
+             and (data / o / "transforms.json").is_file()]
     # the extraction's default gets its own columns where every shown object has its pictures
     default = bool(shown) and all((out / "figures" / o / DEFAULT_VARIANT / "render.png").is_file() for o in shown)
     extra = [DEFAULT_VARIANT] if default else []
@@ -677,7 +712,8 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         "BaseColor / Latents: the G-buffers of the 23 preset views vs ground truth; Relight: frames "
         f"{cfg.relight_views} under the two held-out lightings vs their photos (16 spp references, so Monte Carlo "
         "noise caps it); TTO min: wall-clock minutes of the TTO alone on this machine."
-        + _clean_description(cfg, res, finished) + _sources_description(out, finished, canon),
+        + _clean_description(cfg, res, finished, stored_object_info(out))
+        + _sources_description(out, finished, canon),
         "",
     ]
     for table in tables:
@@ -690,7 +726,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
             lines.append(f"| {ROW_NAMES[name]} | {n_done[name]} | "
                          + " | ".join(_fmt(rows[m]) for m in metrics) + " |")
         lines.append("")
-    families = object_families(Path(cfg.data), finished)
+    families = object_families(Path(cfg.data), finished, stored_object_info(out))
     by_family = family_lines(res, families) if "table1" in tables else []
     if by_family:
         lines += ["### Table 1 by material family", "",
@@ -747,12 +783,13 @@ def _sources_description(out: Path, objects: list[str], canon: dict[str, str]) -
                    for name, sources in found.items())
 
 
-def _clean_description(cfg: EvalConfig, res: Results, objects: list[str]) -> str:
-    """The page's sentence on the clean columns ('' when no result has them)."""
+def _clean_description(cfg: EvalConfig, res: Results, objects: list[str], known: dict[str, Any]) -> str:
+    """The page's sentence on the clean columns ('' when no result has them); the references' spp from the split,
+    else from `known` (the stored run's `object_info`)."""
     if not any(has_metric(res, m) for m in CLEAN_METRICS):
         return ""
-    spp = sorted({json.loads(f.read_text())["settings"]["spp_half"] for o in objects
-                  if (f := Path(cfg.data) / o / "references" / "meta.json").is_file()})  # fmt: skip
+    found = [reference_spp(Path(cfg.data), o) or known.get(o, {}).get("reference_spp_half") for o in objects]
+    spp = sorted({int(n) for n in found if n})
     return (" PSNR PathTrace clean / Relight clean: the same views rendered twice with independent seeds "
             f"({cfg.clean_spp_half} spp each) against the ground-truth material rendered twice "
             f"({'/'.join(str(s) for s in spp) or '?'} spp each; `neumatex references`), with the Monte Carlo noise of "

@@ -63,9 +63,11 @@ DEFAULT_41: dict[str, Any] = {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 
 # the extraction's default of 2026-11-29 (design note 47): that one with the choice's candidates at a quarter of the
 # neural steps; the variants measured against it build on it
 DEFAULT_47: dict[str, Any] = {**DEFAULT_41, "select_fraction": 0.25}
-# the extraction's default since the afternoon of 2026-11-29 (design note 50; pipeline.NEURAL_FROM_PBR and
-# TTOConfig, which a test asserts): that one whose neural phase settles in its last half
-EXTRACTION_DEFAULT: dict[str, Any] = {**DEFAULT_47, "settle_fraction": 0.5}
+# the extraction's default since the afternoon of 2026-11-29 (design note 50): that one whose neural phase settles in
+# its last half; the variants measured against it build on it, so they keep their meaning when the default moves on
+DEFAULT_51: dict[str, Any] = {**DEFAULT_47, "settle_fraction": 0.5}
+# the extraction's default (pipeline.NEURAL_FROM_PBR and TTOConfig, which a test asserts)
+EXTRACTION_DEFAULT: dict[str, Any] = DEFAULT_51
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
@@ -188,22 +190,23 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the default with a smoothness term on its neural phase's change to the planes (TTOConfig.lambda_smooth): a
     # texel whose photo gradient is mostly noise is pulled towards its neighbours' change instead of walking at
     # Adam's full step (design note 52)
-    "pbr_start_default_smooth01": {**EXTRACTION_DEFAULT, "lambda_smooth": 0.1},
-    "pbr_start_default_smooth1": {**EXTRACTION_DEFAULT, "lambda_smooth": 1.0},
+    "pbr_start_default_smooth01": {**DEFAULT_51, "lambda_smooth": 0.1},
+    "pbr_start_default_smooth1": {**DEFAULT_51, "lambda_smooth": 1.0},
     # the default with photometric losses least at a noise-free photo (design note 53): an 8-spp render's
     # tonemapped L2 is least where the material is brighter than the photo's (Jensen), which a nearly noise-free
     # photo (Cycles, a camera) does not share, and more high-rate steps lost on three Cycles presets of four (design
     # note 52). "linear_decorrelated" (tto/loss.py: errors in linear radiance, no curvature) in both phases
-    "pbr_start_default_lin": {**EXTRACTION_DEFAULT, "photo_loss": "linear_decorrelated"},
+    "pbr_start_default_lin": {**DEFAULT_51, "photo_loss": "linear_decorrelated"},
     # ... weighed at the photo's 5 x 5 mean (photo_weight_radius 2): the benchmark's 32-spp photos are noisy, and a
     # pixel's weight at its own value grows as its noise darkens it
-    "pbr_start_default_lin_w2": {**EXTRACTION_DEFAULT, "photo_loss": "linear_decorrelated", "photo_weight_radius": 2},
+    "pbr_start_default_lin_w2": {**DEFAULT_51, "photo_loss": "linear_decorrelated", "photo_weight_radius": 2},
     # the default with the product of two half-estimates' tonemapped errors, each half less its expected gap to the
     # tonemap of its expectation ("decorrelated_debiased", tto/loss.py): no variance term, least at a noise-free photo
-    "pbr_start_default_decdb": {**EXTRACTION_DEFAULT, "photo_loss": "decorrelated_debiased"},
+    "pbr_start_default_decdb": {**DEFAULT_51, "photo_loss": "decorrelated_debiased"},
     # the default whose settling steps (only) take that loss: the L2 moves the material far at the high rate (the
-    # fuzz grew less under either unbiased loss), the settling fits it to a noise-free photo; the same cost
-    "pbr_start_default_settle_decdb": {**EXTRACTION_DEFAULT, "settle_photo_loss": "decorrelated_debiased"},
+    # fuzz grew less under either unbiased loss), the settling fits it to a noise-free photo; the same cost. The
+    # next default's candidate (design notes 58, 59)
+    "pbr_start_default_settle_decdb": {**DEFAULT_51, "settle_photo_loss": "decorrelated_debiased"},
     # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
@@ -211,7 +214,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the default whose high-rate steps move the planes in blocks of 8 texels a side (TTOConfig.coarse_factor): a
     # texel that few photo pixels reach moves with its neighbours' pixels, the settling steps move every texel
     # (design note 56)
-    "pbr_start_default_coarse8": {**EXTRACTION_DEFAULT, "coarse_factor": 8},
+    "pbr_start_default_coarse8": {**DEFAULT_51, "coarse_factor": 8},
     # ... and 600_settle200_decdb's longer high-rate phase (its losses on the Cycles diffuse and metal captures are made
     # in the high-rate steps, design note 55) in blocks of 8
     "pbr_start_default_600_settle200_decdb_coarse8": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
@@ -221,18 +224,18 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # channels (TTOConfig.optimizer "gauss_newton", gn_block; tto/gauss_newton.py) instead of Adam's normalised one:
     # each texel moves by what its photo pixels' curvature says, not by about lr whatever its gradient's noise
     # (design notes 50, 57); the diagonal form without the blocks
-    "pbr_start_default_gn_block": {**EXTRACTION_DEFAULT, "optimizer": "gauss_newton", "gn_block": True,
+    "pbr_start_default_gn_block": {**DEFAULT_51, "optimizer": "gauss_newton", "gn_block": True,
                                    "gn_damping": 1.0, "gn_lr_scale": 0.3},
-    "pbr_start_default_gn_diag": {**EXTRACTION_DEFAULT, "optimizer": "gauss_newton", "gn_damping": 1.0,
+    "pbr_start_default_gn_diag": {**DEFAULT_51, "optimizer": "gauss_newton", "gn_damping": 1.0,
                                   "gn_lr_scale": 0.3},
     # the default whose neural phases render through a control variate (TTOConfig.control_variate "all",
     # tto/control_variate.py): each step's render less the same rays' render under a frozen copy of the field plus that
     # copy's radiance of every photo pixel at 32 samples. From the truth it keeps 36.8 dB instead of 34.7 (design
     # note 57)
-    "pbr_start_default_cv": {**EXTRACTION_DEFAULT, "control_variate": "all", "cv_spp": 32},
+    "pbr_start_default_cv": {**DEFAULT_51, "control_variate": "all", "cv_spp": 32},
     # ... without the settling phase (a remedy for the renders' noise, which the variate takes away): every neural step
     # at the high rate and 8 spp
-    "pbr_start_default_cv_nosettle": {**EXTRACTION_DEFAULT, "control_variate": "all", "cv_spp": 32,
+    "pbr_start_default_cv_nosettle": {**DEFAULT_51, "control_variate": "all", "cv_spp": 32,
                                       "settle_fraction": 0.0},
     # the default with another seed (every random draw of the TTO: pixels, light paths, the choices' scores): how far
     # a result moves when nothing but the seed changes, the spread a paired difference is read against (design note
@@ -327,7 +330,7 @@ REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_si
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
                       "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr",
                       "select_reuse_start", "decoder_in_other_basis", "validation_spp", "validation_stride",
-                      "settle_fraction", "lambda_smooth", "coarse_factor")
+                      "settle_fraction", "settle_photo_loss", "lambda_smooth", "coarse_factor")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:
