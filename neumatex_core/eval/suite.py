@@ -255,12 +255,15 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
         stored = Path(cfg.out) / "eval.json"
         if not stored.is_file():
             raise ValueError(f"{stored}: no stored evaluation to report on (run `neumatex eval` first)")
-        settings = json.loads(stored.read_text())["config"]
+        stored_run = json.loads(stored.read_text())
+        settings = stored_run["config"]
         keep = {"out": cfg.out, "doc": cfg.doc, "figures": cfg.figures, "report_only": True}
         cfg = EvalConfig(**{**{k: v for k, v in settings.items() if k in EvalConfig.__dataclass_fields__}, **keep})
     data, out = Path(cfg.data), Path(cfg.out)
     # --report-only pages the stored run's objects, so the page can be written again where the split is not on disk
-    objects = stored_objects(out) if cfg.report_only else select_objects(data, cfg.objects)
+    objects = list(stored_run.get("objects") or []) if cfg.report_only else select_objects(data, cfg.objects)
+    if not objects:
+        raise ValueError(f"{out / 'eval.json'}: the stored evaluation names no objects (run `neumatex eval` again)")
     tables = [t.strip() for t in cfg.tables.split(",") if t.strip()]
     canon = distinct_variants(tables)
     runs = list(dict.fromkeys(canon.values())) + [TRUTH]
@@ -504,15 +507,6 @@ def object_info(data: Path, objects: list[str]) -> dict[str, dict[str, Any]]:
     return {o: {"families": families.get(o, []), "reference_spp_half": reference_spp(data, o)} for o in objects}
 
 
-def stored_objects(out: Path) -> list[str]:
-    """The objects of the stored evaluation in `out` (its eval.json)."""
-    stored = out / "eval.json"
-    objects = json.loads(stored.read_text()).get("objects") if stored.is_file() else None
-    if not objects:
-        raise ValueError(f"{stored}: no stored evaluation with its objects to report on (run `neumatex eval` first)")
-    return list(objects)
-
-
 def stored_object_info(out: Path) -> dict[str, Any]:
     """The stored evaluation's `object_info` ({} when it has none or there is no eval.json)."""
     stored = out / "eval.json"
@@ -687,6 +681,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
     # only objects with every variant: rows of a partial page then compare the same objects
     finished = finished_objects(out, objects, set(canon.values()) | {TRUTH})
     res = load_results(out, finished, canon)
+    known = stored_object_info(out)  # what the split would tell, kept in eval.json (object_info)
     n_done = {name: len(set().union(*rows.values())) for name, rows in res.items()}  # objects with any metric
     command = command_line("neumatex eval", cfg, skip=("progress", "report_only", "allow_incomplete"))
     subjects = [s for s, shown in (("the paper's tables", any(t in PAPER_TABLES for t in tables)),
@@ -712,7 +707,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
         "BaseColor / Latents: the G-buffers of the 23 preset views vs ground truth; Relight: frames "
         f"{cfg.relight_views} under the two held-out lightings vs their photos (16 spp references, so Monte Carlo "
         "noise caps it); TTO min: wall-clock minutes of the TTO alone on this machine."
-        + _clean_description(cfg, res, finished, stored_object_info(out))
+        + _clean_description(cfg, res, finished, known)
         + _sources_description(out, finished, canon),
         "",
     ]
@@ -726,7 +721,7 @@ def write_results(cfg: EvalConfig, objects: list[str], tables: list[str], canon:
             lines.append(f"| {ROW_NAMES[name]} | {n_done[name]} | "
                          + " | ".join(_fmt(rows[m]) for m in metrics) + " |")
         lines.append("")
-    families = object_families(Path(cfg.data), finished, stored_object_info(out))
+    families = object_families(Path(cfg.data), finished, known)
     by_family = family_lines(res, families) if "table1" in tables else []
     if by_family:
         lines += ["### Table 1 by material family", "",
