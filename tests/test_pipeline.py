@@ -422,25 +422,29 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    # the default's own variant (since 2026-11-29, design note 50) is the extraction's TTO; the default before it
-    # differs only in the settling phase, the one before that also in the choice's length, and the variants
-    # measured against those build on them
+    # the default's own variant (since 2026-12-02, design note 60) is the extraction's TTO; the default before it
+    # differs only in its settling steps' loss, the one before that also in the settling phase, and the one before
+    # that also in the choice's length; the variants measured against those build on them
     from neumatex_core.eval.variants import DEFAULT_VARIANT
 
-    assert DEFAULT_VARIANT == "pbr_start_default_settle05" and DEFAULT_VARIANT in TABLES["default"]
+    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb" and DEFAULT_VARIANT in TABLES["default"]
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
+    assert extraction.settle_photo_loss == "decorrelated_debiased"
+    assert variant_config("pbr", extraction).settle_photo_loss == ""
+    settle05 = variant_config("pbr_start_default_settle05", extraction)
+    assert settle05 == replace(extraction, settle_photo_loss="")
     assert extraction.settle_fraction == 0.5 and variant_config("pbr", extraction).settle_fraction == 0.0
-    assert variant_config("pbr_start_default_f025", extraction) == replace(extraction, settle_fraction=0.0)
+    assert variant_config("pbr_start_default_f025", extraction) == replace(settle05, settle_fraction=0.0)
     # the default with a smoothness term on its neural phase (design note 52); no other variant smooths
-    assert variant_config("pbr_start_default_smooth01", extraction) == replace(extraction, lambda_smooth=0.1)
+    assert variant_config("pbr_start_default_smooth01", extraction) == replace(settle05, lambda_smooth=0.1)
     assert extraction.lambda_smooth == 0.0 and variant_config("pbr", replace(extraction, lambda_smooth=1.0)) == \
         variant_config("pbr", extraction)
     # the default with coarse high-rate moves (design note 56); no other variant coarsens
-    assert variant_config("pbr_start_default_coarse8", extraction) == replace(extraction, coarse_factor=8)
+    assert variant_config("pbr_start_default_coarse8", extraction) == replace(settle05, coarse_factor=8)
     assert extraction.coarse_factor == 1 and variant_config("pbr", replace(extraction, coarse_factor=8)) == \
         variant_config("pbr", extraction)
     default = variant_config("pbr_start_default_alt_frozen", TTOConfig.preset("cpu"))
-    assert default == replace(extraction, select_fraction=0.5, settle_fraction=0.0)
+    assert default == replace(settle05, select_fraction=0.5, settle_fraction=0.0)
     # its choices scored with fewer samples, or on fewer pixels (tried 2026-11-28, design note 42)
     assert variant_config("pbr_start_default_spp16", extraction) == replace(default, validation_spp=16)
     assert variant_config("pbr_start_default_stride2", extraction) == replace(default, validation_stride=2)
@@ -462,6 +466,6 @@ def test_every_eval_table_is_described_and_valid():
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
     assert variant_config("pbr_start_consistent_01", extraction) == replace(
         textured, alternative_basis="", train_decoder=False, decoder_lr=0.1, decoder_in_other_basis=True,
-        settle_fraction=0.0)
+        settle_fraction=0.0, settle_photo_loss="")
     assert variant_config("pbr", extraction).alternative_basis == ""  # type: ignore[union-attr]
     assert not variant_config("pbr", extraction).train_decoder  # type: ignore[union-attr]

@@ -63,11 +63,13 @@ DEFAULT_41: dict[str, Any] = {**CHOOSE_V4, "train_decoder": True, "decoder_lr": 
 # the extraction's default of 2026-11-29 (design note 47): that one with the choice's candidates at a quarter of the
 # neural steps; the variants measured against it build on it
 DEFAULT_47: dict[str, Any] = {**DEFAULT_41, "select_fraction": 0.25}
-# the extraction's default since the afternoon of 2026-11-29 (design note 50): that one whose neural phase settles in
-# its last half; the variants measured against it build on it, so they keep their meaning when the default moves on
+# the extraction's default from the afternoon of 2026-11-29 to 2026-12-02 (design note 50): that one whose neural
+# phase settles in its last half; the variants measured against it build on it, so they keep their meaning when the
+# default moves on
 DEFAULT_51: dict[str, Any] = {**DEFAULT_47, "settle_fraction": 0.5}
-# the extraction's default (pipeline.NEURAL_FROM_PBR and TTOConfig, which a test asserts)
-EXTRACTION_DEFAULT: dict[str, Any] = DEFAULT_51
+# the extraction's default since 2026-12-02 (design notes 59, 60): that one whose settling steps take the debiased
+# decorrelated loss (pipeline.NEURAL_FROM_PBR and TTOConfig, which a test asserts)
+EXTRACTION_DEFAULT: dict[str, Any] = {**DEFAULT_51, "settle_photo_loss": "decorrelated_debiased"}
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
@@ -179,8 +181,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the default whose last half (three quarters) settles: the same rays at the photos' 32 spp (no tonemap bias
     # against them), the rate going on from 0.02 down to 0.002. From the truth: 34.62 dB kept, the default 33.41;
     # from the PBR start, all 40 objects: PathTrace +0.44 +- 0.13, Relight +0.69 +- 0.20 dB against the default
-    # (objects 0-4 for three quarters: -0.06 +- 0.42; design note 50). Half is the extraction's default
-    "pbr_start_default_settle05": EXTRACTION_DEFAULT,
+    # (objects 0-4 for three quarters: -0.06 +- 0.42; design note 50). Half was the extraction's default from
+    # 2026-11-29 to 2026-12-02
+    "pbr_start_default_settle05": DEFAULT_51,
     "pbr_start_default_settle075": {**DEFAULT_47, "settle_fraction": 0.75},
     # the Cycles sheens lose 1.4-3.5 dB relit with the settling half (design note 51): the fuzz grows only at the
     # high rate. A quarter settling at the same cost, and the old default's 400 steps at the high rate followed by 200
@@ -205,8 +208,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pbr_start_default_decdb": {**DEFAULT_51, "photo_loss": "decorrelated_debiased"},
     # the default whose settling steps (only) take that loss: the L2 moves the material far at the high rate (the
     # fuzz grew less under either unbiased loss), the settling fits it to a noise-free photo; the same cost. The
-    # next default's candidate (design notes 58, 59)
-    "pbr_start_default_settle_decdb": {**DEFAULT_51, "settle_photo_loss": "decorrelated_debiased"},
+    # extraction's default since 2026-12-02 (design notes 58-60)
+    "pbr_start_default_settle_decdb": EXTRACTION_DEFAULT,
     # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
@@ -292,7 +295,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
 # The variant that is the extraction's default (pipeline.NEURAL_FROM_PBR and TTOConfig; a test asserts it): the
 # product's row of `neumatex eval` (table "default") and of issue 14's targets. A fixed config under a fixed name, so
 # stored results never change meaning; when the default changes, its new variant is added and named here.
-DEFAULT_VARIANT = "pbr_start_default_settle05"
+DEFAULT_VARIANT = "pbr_start_default_settle_decdb"
 
 PAPER_TABLES = ("table1", "table2", "table3")  # the paper's tables (its orderings are checked on them)
 TABLES: dict[str, list[str]] = {
