@@ -68,8 +68,10 @@ DEFAULT_47: dict[str, Any] = {**DEFAULT_41, "select_fraction": 0.25}
 # default moves on
 DEFAULT_51: dict[str, Any] = {**DEFAULT_47, "settle_fraction": 0.5}
 # the extraction's default since 2026-12-02 (design notes 59, 60): that one whose settling steps take the debiased
-# decorrelated loss (pipeline.NEURAL_FROM_PBR and TTOConfig, which a test asserts)
-EXTRACTION_DEFAULT: dict[str, Any] = {**DEFAULT_51, "settle_photo_loss": "decorrelated_debiased"}
+# decorrelated loss; the variants measured against it build on it
+DEFAULT_60: dict[str, Any] = {**DEFAULT_51, "settle_photo_loss": "decorrelated_debiased"}
+# the extraction's default (pipeline.NEURAL_FROM_PBR and TTOConfig, which a test asserts)
+EXTRACTION_DEFAULT: dict[str, Any] = DEFAULT_60
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
@@ -210,6 +212,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # fuzz grew less under either unbiased loss), the settling fits it to a noise-free photo; the same cost. The
     # extraction's default since 2026-12-02 (design notes 58-60)
     "pbr_start_default_settle_decdb": EXTRACTION_DEFAULT,
+    # the default whose settling steps trace the same rays over 4x (2x) the pixels at 8 (16) spp: 32 spp kept the
+    # L2's tonemap bias off the settling (design note 50), which the debiased loss no longer has, and more pixels
+    # a step average more of the photos' own noise and cover more texels (design note 61)
+    "pbr_start_default_settle_decdb_spp8": {**DEFAULT_60, "settle_spp": 8},
+    "pbr_start_default_settle_decdb_spp16": {**DEFAULT_60, "settle_spp": 16},
     # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
