@@ -85,6 +85,12 @@ def one(object_dir: str, work: str, variant: str) -> dict[str, Any]:
             **({"choice": choice} if choice else {})}  # fmt: skip
 
 
+def own_rows() -> list[dict[str, Any]]:
+    """This benchmark's rows (bench/results/variants_clean.jsonl), oldest first."""
+    own = RESULTS / "variants_clean.jsonl"
+    return [json.loads(line) for line in own.read_text().splitlines()] if own.is_file() else []
+
+
 def stored_rows(since: str = "") -> dict[str, dict[str, dict[str, float]]]:
     """variant -> object -> scores: this benchmark's rows, then random_pose_e2e's preset rows where this one has
     none (the latest line wins within each file); with `since` (an ISO time), only this benchmark's rows written at
@@ -97,12 +103,9 @@ def stored_rows(since: str = "") -> dict[str, dict[str, dict[str, float]]]:
                 for key, scores in row.items():
                     if key.startswith("preset/"):
                         rows.setdefault(key.split("/", 1)[1], {})[row["object"]] = scores
-    own = RESULTS / "variants_clean.jsonl"
-    if own.is_file():
-        for line in own.read_text().splitlines():
-            row = json.loads(line)
-            if row["timestamp"] >= since:
-                rows.setdefault(row["variant"], {})[row["object"]] = row["scores"]
+    for row in own_rows():
+        if row["timestamp"] >= since:
+            rows.setdefault(row["variant"], {})[row["object"]] = row["scores"]
     return rows
 
 
@@ -117,9 +120,7 @@ def basis_scores(variant: str) -> dict[str, dict[str, float]]:
         for row in json.loads(line)["rows"]:
             scores[Path(row["capture"]).name] = {"pbr": row["pbr"], "own": row[load_basis().basis_id],
                                                  "alternative": row[BASIS_V4]}  # fmt: skip
-    own = RESULTS / "variants_clean.jsonl"
-    for line in own.read_text().splitlines() if own.is_file() else []:
-        row = json.loads(line)
+    for row in own_rows():
         c = row.get("choice", {})
         same_phase = row["variant"] in VARIANTS and differs_only_in_basis(variant, row["variant"])
         if "choice_basis_pbr_psnr" in c and same_phase:
@@ -216,10 +217,8 @@ def summarise(variants: list[str], against: list[str], fill_from: list[str] | No
 def to_eval(variants: list[str], out: Path) -> int:
     """Write the latest row per (object, variant) of this file as the evaluation's result in `out` (the fields
     `evaluate_variant` stores: scores, choices, object, variant) with its "source"; print how many per variant."""
-    own = RESULTS / "variants_clean.jsonl"
     latest: dict[tuple[str, str], dict[str, Any]] = {}
-    for line in own.read_text().splitlines() if own.is_file() else []:
-        row = json.loads(line)
+    for row in own_rows():
         if row["variant"] in variants:
             latest[(row["variant"], row["object"])] = row
     for variant in variants:
