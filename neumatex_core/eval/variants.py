@@ -223,8 +223,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # +- 0.19, the next default's candidate (design note 61)
     "pbr_start_default_settle_decdb_spp128": {**DEFAULT_60, "settle_spp": 128},
     "pbr_start_default_settle_decdb_slr03": {**DEFAULT_60, "settle_lr": 0.3},
-    # ... and from the full rate (a second cosine from lr, the first one's start): 3x the rate gained most on the
-    # Cycles captures, whose photos are nearly noise-free (metal +1.15, sheen +2.27 relit; design note 62)
+    # ... and from the full rate (a second cosine from lr, the first one's start): a higher settling rate gains most
+    # on the Cycles captures, whose photos are nearly noise-free (relit against the default, 3x: metal +1.15, sheen
+    # +2.27; full: +1.79, +5.23); the next default's candidate (design note 62)
     "pbr_start_default_settle_decdb_slr10": {**DEFAULT_60, "settle_lr": 1.0},
     # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
