@@ -227,6 +227,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # on the Cycles captures, whose photos are nearly noise-free (relit against the default, 3x: metal +1.15, sheen
     # +2.27; full: +1.79, +5.23); the next default's candidate (design note 62)
     "pbr_start_default_settle_decdb_slr10": {**DEFAULT_60, "settle_lr": 1.0},
+    # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
+    # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
+    # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
+    # (design note 63)
+    "pbr_start_default_settle_decdb_slr10_m0": {**DEFAULT_60, "settle_lr": 1.0, "select_margin_db": 0.0},
     # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
