@@ -36,6 +36,10 @@ object (docs/design-notes.md items 51 and 59):
 `--by-family BASELINE` (with --summarise) also prints each variant minus BASELINE per material family (the families
 of an object's regions, from its meta.json; an object with two counts in both rows) and over all objects, with the
 number of objects on which the variant is ahead.
+
+`--per-object BASELINE` (with --summarise) also prints each variant minus BASELINE object by object (PathTrace,
+Relight, BaseColor, TTO minutes), the objects where it is behind on PathTrace marked, so a candidate's losses can be
+looked at before it becomes the default (docs/design-notes.md item 63).
 """
 
 from __future__ import annotations
@@ -177,8 +181,22 @@ def family_table(res: Results, variant: str, base: str, families: dict[str, list
         print(f"| {family} | " + " | ".join(cells) + " |")
 
 
+def object_table(stored: dict[str, dict[str, dict[str, float]]], variant: str, base: str) -> None:
+    """Print `variant` - `base` on each object both have a row on, a "<" after the objects where `variant` is behind
+    on PathTrace."""
+    metrics = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor", "tto_minutes")
+    mine, theirs = stored.get(variant, {}), stored.get(base, {})
+    print(f"\n{variant} - {base} by object")
+    print("| object | " + " | ".join(NAMES.get(m, "TTO, min") for m in metrics) + " |")
+    print("|---" * (1 + len(metrics)) + "|")
+    for o in sorted(set(mine) & set(theirs)):
+        cells = [f"{mine[o][m] - theirs[o][m]:+.2f}" if m in mine[o] and m in theirs[o] else "-" for m in metrics]
+        behind = mine[o].get("psnr_pathtrace_clean", 0.0) < theirs[o].get("psnr_pathtrace_clean", 0.0)
+        print(f"| {o}{' <' if behind else ''} | " + " | ".join(cells) + " |")
+
+
 def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None,
-              by_family: tuple[Path, str] | None = None, since: str = "") -> int:
+              by_family: tuple[Path, str] | None = None, since: str = "", per_object: str = "") -> int:
     stored = stored_rows(since)
     for variant in variants if fill_from else []:
         scores = basis_scores(variant)
@@ -211,6 +229,8 @@ def summarise(variants: list[str], against: list[str], fill_from: list[str] | No
             print(f"| {NAMES[m]} | {' | '.join(cells)} |")
         if by_family is not None:
             family_table(res, variant, by_family[1], object_families(by_family[0], sorted(mine)))
+        if per_object:
+            object_table(stored, variant, per_object)
     return 0
 
 
@@ -249,6 +269,8 @@ def main() -> int:
                         "in where they choose the same basis (see above)")
     parser.add_argument("--by-family", default="", metavar="BASELINE", help="with --summarise: also each variant - "
                         "BASELINE per material family of the objects (their meta.json), and on how many it is ahead")
+    parser.add_argument("--per-object", default="", metavar="BASELINE", help="with --summarise: also each variant - "
+                        "BASELINE object by object")
     parser.add_argument("--to-eval", default="", metavar="OUT", help="write --variants' rows as results of the "
                         "evaluation in OUT (for `neumatex eval --out OUT --report-only`) and stop")
     args = parser.parse_args()
@@ -257,7 +279,8 @@ def main() -> int:
         return to_eval(variants, Path(args.to_eval))
     if args.summarise:
         return summarise(variants, against, [v for v in args.fill_from.split(",") if v],
-                         (Path(args.data), args.by_family) if args.by_family else None, args.since)
+                         (Path(args.data), args.by_family) if args.by_family else None, args.since,
+                         args.per_object)
     data = Path(args.data)
     done = stored_rows(args.since)
     jobs = [(str(data / o), str(Path(args.work) / o), v) for v in variants for o in select_objects(data, args.objects)
