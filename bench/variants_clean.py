@@ -39,7 +39,7 @@ number of objects on which the variant is ahead.
 
 `--per-object BASELINE` (with --summarise) also prints each variant minus BASELINE object by object (PathTrace,
 Relight, BaseColor, TTO minutes), the objects where it is behind on PathTrace marked, so a candidate's losses can be
-looked at before it becomes the default (docs/design-notes.md item 63).
+looked at before it becomes the default (docs/design-notes.md item 64).
 """
 
 from __future__ import annotations
