@@ -422,17 +422,21 @@ def test_every_eval_table_is_described_and_valid():
     assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", extraction)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    # the default's own variant (since 2026-12-02, design note 60) is the extraction's TTO; the default before it
-    # differs only in its settling steps' loss, the one before that also in the settling phase, and the one before
-    # that also in the choice's length; the variants measured against those build on them
+    # the default's own variant (since 2026-12-03, design note 65) is the extraction's TTO; the default before it
+    # differs only in its settling's rate, the one before that also in its settling steps' loss, the one before that
+    # also in the settling phase, and the one before that also in the choice's length; the variants measured against
+    # those build on them
     from neumatex_core.eval.variants import DEFAULT_VARIANT
 
-    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb" and DEFAULT_VARIANT in TABLES["default"]
+    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10" and DEFAULT_VARIANT in TABLES["default"]
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
-    assert extraction.settle_photo_loss == "decorrelated_debiased"
+    assert extraction.settle_photo_loss == "decorrelated_debiased" and extraction.settle_lr == 1.0
     assert variant_config("pbr", extraction).settle_photo_loss == ""
+    decdb = variant_config("pbr_start_default_settle_decdb", extraction)
+    assert decdb == replace(extraction, settle_lr=TTOConfig().settle_lr)
+    assert variant_config("pbr_start_default_settle_decdb_slr03", extraction) == replace(decdb, settle_lr=0.3)
     settle05 = variant_config("pbr_start_default_settle05", extraction)
-    assert settle05 == replace(extraction, settle_photo_loss="")
+    assert settle05 == replace(decdb, settle_photo_loss="")
     assert extraction.settle_fraction == 0.5 and variant_config("pbr", extraction).settle_fraction == 0.0
     assert variant_config("pbr_start_default_f025", extraction) == replace(settle05, settle_fraction=0.0)
     # the default with a smoothness term on its neural phase (design note 52); no other variant smooths
@@ -466,6 +470,6 @@ def test_every_eval_table_is_described_and_valid():
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
     assert variant_config("pbr_start_consistent_01", extraction) == replace(
         textured, alternative_basis="", train_decoder=False, decoder_lr=0.1, decoder_in_other_basis=True,
-        settle_fraction=0.0, settle_photo_loss="")
+        settle_fraction=0.0, settle_photo_loss="", settle_lr=TTOConfig().settle_lr)
     assert variant_config("pbr", extraction).alternative_basis == ""  # type: ignore[union-attr]
     assert not variant_config("pbr", extraction).train_decoder  # type: ignore[union-attr]
