@@ -234,14 +234,15 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # that default settling from twice the rate (the rate went 0.1 -> 0.3 -> 1.0 with gains on the nearly clean
     # Cycles photos at each step), and settling over three quarters of the steps at the full rate (the high-rate
     # phase's L2 is least at a brighter material than the photo, the settling's loss at the photo itself): the
-    # same cost; measured against it on one machine (design note 65)
+    # same cost; measured against it on one machine (design note 65): twice the rate loses (PathTrace -0.38 +- 0.26,
+    # 10 objects), three quarters of the steps gains (PathTrace +0.21 +- 0.07, 32 objects), the next candidate
     "pbr_start_default_settle_decdb_slr20": {**DEFAULT_65, "settle_lr": 2.0},
     "pbr_start_default_settle_decdb_slr10_f075": {**DEFAULT_65, "settle_fraction": 0.75},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
     # (design note 63)
-    "pbr_start_default_settle_decdb_slr10_m0": {**DEFAULT_60, "settle_lr": 1.0, "select_margin_db": 0.0},
+    "pbr_start_default_settle_decdb_slr10_m0": {**DEFAULT_65, "select_margin_db": 0.0},
     # 600_settle200 (the fuzz grows at the high rate: benchmark +0.63, Cycles sheen +3.8, but coat, metal and diffuse
     # lose, design note 52) whose settling steps take that loss, fitting the end to a noise-free photo (design note 55)
     "pbr_start_default_600_settle200_decdb": {**DEFAULT_47, "steps": 600, "settle_fraction": 1 / 3,
