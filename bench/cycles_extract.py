@@ -27,6 +27,15 @@ the same --pose-seed, as bench/cycles_matrix.sh writes), each render is scored n
 spp, ours rendered twice at --clean-spp with independent seeds), pooled over the folder's views: `photos_clean_db`
 and `relit_clean_db`, in place of the raw scores. Both Cycles' and our noise are taken out, so these differences
 are not compressed by either.
+
+On a machine without the kept scores (a fresh clone), `--stored` takes each capture's scores from its latest row in
+bench/results/cycles_extract.jsonl written on a machine of the same CPU model, so that only the variants it lacks
+are run: a new candidate is paired with the stored baseline and default. They are not bit for bit what a rerun
+gives: the Cycles renders and our code move the scores by a few thousandths of a dB (docs/design-notes.md item 62),
+and where that flips one of the TTO's discrete choices (the basis, uniform or textured; each row's `selection`)
+the capture's score jumps: teapot-diffuse's stored default chose the default basis and scored 49.42 / 45.17 dB
+(held-out photos / relit), rerun on 2026-12-03 it chose basis v4 and 40.51 / 41.14 (item 66). Compare the
+selections of the pair, and rerun without `--stored` (another --work) where they differ.
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from common import argument_parser, prepared_capture, write_result  # noqa: E402
+from common import RESULTS_DIR, argument_parser, cpu_model, prepared_capture, write_result  # noqa: E402
 
 from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
@@ -137,6 +146,18 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
     return out
 
 
+def stored_rows(cpu_model: str) -> dict[str, dict[str, Any]]:
+    """Per capture path, its row in the latest line of bench/results/cycles_extract.jsonl that holds it and was
+    written on a machine whose CPU model is `cpu_model` (a later line's row carries the earlier rows' kept scores)."""
+    path = RESULTS_DIR / "cycles_extract.jsonl"
+    out: dict[str, dict[str, Any]] = {}
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        record = json.loads(line)
+        if record.get("machine", {}).get("cpu_model") == cpu_model:
+            out.update({row["capture"]: row for row in record.get("rows", [])})
+    return out
+
+
 def selection_of(result: Any) -> dict[str, Any]:
     """The TTO's choices on held-out photos (select_anchor / select_uniform: held-out PSNRs, which result was kept;
     alternative_basis: the scores that chose the basis), when it made any."""
@@ -153,6 +174,8 @@ def main() -> int:
     parser.add_argument("--max-bounces", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--again", action="store_true", help="recompute scores kept from an earlier run")
+    parser.add_argument("--stored", action="store_true",
+                        help="where no scores are kept, start from the capture's latest stored row (this CPU model's)")
     parser.add_argument("--variants", default="pbr,neural",
                         help="TTO variants, comma separated: pbr (the baseline), neural (the extraction's default) "
                              "and any `neumatex eval` variant (eval/variants.py); each is compared with pbr")
@@ -163,9 +186,10 @@ def main() -> int:
         parser.error(f"--variants: unknown {unknown} or no pbr (variants: neural, {', '.join(EVAL_VARIANTS)})")
     torch.set_num_threads(args.threads)
     rows = []
+    stored = stored_rows(cpu_model()) if args.stored else {}
     for capture in args.captures:
         kept = args.work / capture.name / "scores.json"
-        row = json.loads(kept.read_text()) if kept.is_file() and not args.again else {}
+        row = json.loads(kept.read_text()) if kept.is_file() and not args.again else dict(stored.get(str(capture), {}))
         if "recipe" in row and TTOConfig.from_dict(row["recipe"]) != ExtractConfig.preset("cpu").tto_config():
             row.pop("neural", None)  # kept from an extraction default that has changed since: "neural" is run again
         for name in [n for n in names if "relit_clean_db" in row.get(n, {})]:

@@ -234,10 +234,17 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # that default settling from twice the rate (the rate went 0.1 -> 0.3 -> 1.0 with gains on the nearly clean
     # Cycles photos at each step), and settling over three quarters of the steps at the full rate (the high-rate
     # phase's L2 is least at a brighter material than the photo, the settling's loss at the photo itself): the
-    # same cost; measured against it on one machine (design note 65): twice the rate loses (PathTrace -0.38 +- 0.26,
-    # 10 objects), three quarters of the steps gains (PathTrace +0.21 +- 0.07, 32 objects), the next candidate
+    # same cost; measured against it on one machine (design notes 65, 66): twice the rate loses (PathTrace -0.38 +-
+    # 0.26, 10 objects); three quarters of the steps gains on all 40 objects (PathTrace +0.22 +- 0.06, Relight +0.09
+    # +- 0.06) and the Cycles coats and metals (relit +0.25, +0.97) but loses the Cycles sheens (relit -1.12 +- 0.41)
     "pbr_start_default_settle_decdb_slr20": {**DEFAULT_65, "settle_lr": 2.0},
     "pbr_start_default_settle_decdb_slr10_f075": {**DEFAULT_65, "settle_fraction": 0.75},
+    # ... and the default's 200 high-rate neural steps kept (seed for seed) but its settling a half longer (300
+    # steps, as f075's), since f075 loses the Cycles sheens, whose fuzz grows in the high-rate steps (design notes 52,
+    # 66); the choice's candidates keep their 100 steps each. 100 more neural steps (+12% of the TTO's). The next
+    # default's candidate (design note 66)
+    "pbr_start_default_settle_decdb_slr10_s500": {**DEFAULT_65, "steps": 500, "settle_fraction": 0.6,
+                                                  "select_fraction": 0.2},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
