@@ -75,11 +75,13 @@ def beat_command(data_dir: Path) -> list[str]:
 def api_command(host: str, port: int) -> list[str]:
     """uvicorn serving the API: uvloop (uvicorn[standard]) for the event loop, but h11 as the HTTP parser, because
     httptools answers a header with non-ASCII bytes (e.g. a mistyped API key) with a bare 400 before the app can
-    say what is wrong (a 401 naming the key)."""
+    say what is wrong (a 401 naming the key). h11 is told how long a request's head may grow (`max_header_bytes`)."""
     from services.core.config import get_settings
 
+    settings = get_settings()
     return [sys.executable, "-m", "uvicorn", "services.main:app", "--host", host, "--port", str(port), "--http", "h11",
-            "--log-level", "warning", "--timeout-graceful-shutdown", f"{get_settings().shutdown_grace_s:g}"]
+            "--h11-max-incomplete-event-size", str(settings.max_header_bytes), "--log-level", "warning",
+            "--timeout-graceful-shutdown", f"{settings.shutdown_grace_s:g}"]
 
 
 def proxy_config(host: str, port: int, data_dir: Path, max_upload_bytes: int) -> ProxyConfig | None:

@@ -74,6 +74,10 @@ class Settings(BaseSettings):
     metrics_token: str = ""  # /metrics needs 'Authorization: Bearer <metrics_token>' ...
     metrics_public: bool = False  # ... unless this is true (a private network); neither: /metrics is 403
     shutdown_grace_s: float = 5.0  # on SIGTERM, progress streams end and the API stops within this (uvicorn)
+    # a request's headers up to this many bytes reach the app, however TCP splits them (uvicorn's h11 buffers at
+    # most 16 KiB of an incomplete head by default, so a longer one got a bare 400 or a reset by chance); longer:
+    # a 400 from the server
+    max_header_bytes: int = 128 * 1024
     bootstrap_tenant: str = ""  # with bootstrap_api_key: created at start-up if missing (python -m services serve)
     bootstrap_api_key: str = ""
     public_url: str = "http://127.0.0.1:8000"

@@ -9,7 +9,9 @@ service promises "a bad config is a 422, never a failed job".
 from __future__ import annotations
 
 import json
+import socket
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -177,3 +179,21 @@ def test_name_is_accepted_and_reaches_the_config(service: Service, world: dict[s
         job = r.json()
         assert job["config"] == {**TINY, "name": "red teapot", "tto": {"steps": 2}}
         assert c.post(f"/v1/jobs/{job['id']}/cancel").status_code == 200  # no worker runs it
+
+
+def test_a_long_head_split_by_tcp_still_reaches_the_app(service: Service) -> None:
+    """A 60 KB Authorization header sent in three pieces with pauses between them (as a slow link would deliver it)
+    gets the API's 401, not uvicorn's bare 400 and a reset: h11 buffers up to MAX_HEADER_BYTES of a head."""
+    url = httpx.URL(service.url)
+    head = (f"GET /v1/jobs HTTP/1.1\r\nHost: {url.host}\r\nConnection: close\r\nAuthorization: Bearer "
+            + "k" * 60_000 + "\r\n\r\n").encode()
+    with socket.create_connection((url.host, url.port), timeout=30) as s:
+        for piece in (head[:10_000], head[10_000:30_000], head[30_000:]):
+            s.sendall(piece)
+            time.sleep(0.2)
+        answer = b""
+        while chunk := s.recv(65536):
+            answer += chunk
+    status_line, _, rest = answer.partition(b"\r\n")
+    assert status_line.split()[1] == b"401", answer[:300]
+    assert b"unknown or revoked API key" in rest
