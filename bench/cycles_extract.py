@@ -99,11 +99,12 @@ def clean_render_psnr(folder: Path, twin: Path, field: MaterialField, spp: int, 
     return score.psnr
 
 
-def variant_tto(name: str, default: TTOConfig) -> TTOConfig:
-    """"neural": the extraction's default; any other name: that `neumatex eval` variant (eval/variants.py) on it."""
+def variant_tto(name: str, config: ExtractConfig) -> TTOConfig:
+    """"neural": the extraction's default TTO; any other name: that `neumatex eval` variant (eval/variants.py) on the
+    config's variant base."""
     if name == "neural":
-        return default
-    tto = variant_config(name, default)
+        return config.tto_config()
+    tto = variant_config(name, config.variant_base())
     if tto is None:
         raise ValueError(f"variant {name!r} runs no TTO")
     return tto
@@ -113,7 +114,7 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
                   out: dict[str, Any]) -> dict[str, Any]:
     """Add the scores of the variants `names` that `out` (the capture's kept row, or {}) lacks; returns it."""
     config, pred, cap, mesh, photos = prepared_capture(capture, work)
-    variants = {name: variant_tto(name, config.tto_config()) for name in names if name not in out}
+    variants = {name: variant_tto(name, config) for name in names if name not in out}
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)
     relit = sorted(p for p in (capture / "relight").glob("*") if (p / "transforms.json").is_file())

@@ -38,7 +38,7 @@ class ExtractCommandConfig:
         "sheen; its base colour is kept even over the surface); uniform and choose need the PBR start (--init pbr or "
         "auto; choose is textured without it); default: the extract config's (choose)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
-    steps: int = option(0, "TTO steps (0: the preset's)")
+    steps: int = option(0, "neural TTO steps (0: the preset's)")
     photo_exposure: bool = option(False, "fit each photo's exposure in TTO (hand-held photos; docs/capture-format.md)")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
     seed: int = option(0, "random seed")
@@ -79,9 +79,10 @@ def run_extract(cfg: ExtractCommandConfig) -> int:
             print("note: no usable LMRM checkpoint; starting from a random triplane (--init random)", file=sys.stderr)
     variation = {} if cfg.variation == "default" else {"variation": cfg.variation}
     config = ExtractConfig.preset(cfg.preset, init=init, device=cfg.device, seed=cfg.seed, **variation)
-    if cfg.steps or cfg.photo_exposure:
-        config = replace(config, tto=replace(config.tto, steps=cfg.steps or config.tto.steps,
-                                             photo_exposure=cfg.photo_exposure))
+    if cfg.steps:  # the neural TTO's steps, as given (not scaled by the preset's neural_steps_scale)
+        config = replace(config, neural_steps_scale=1.0, tto=replace(config.tto, steps=cfg.steps))
+    if cfg.photo_exposure:
+        config = replace(config, tto=replace(config.tto, photo_exposure=cfg.photo_exposure))
     config.check()
     out = Path(cfg.out)
     work = Path(cfg.work) if cfg.work else default_work(out)

@@ -82,10 +82,16 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # over the L2 settling at the same cost (items 53, 58 and 59). The settling's cosine starts again from the full rate
 # (settle_lr 1.0, not a tenth): on all 40 objects, clean, PathTrace +0.15 +- 0.13 and Relight +0.73 +- 0.14 dB over
 # a tenth, and on the 16 Cycles captures relit +0.55 (coat) to +5.23 dB (sheen), at the same cost (items 62-65).
+# The settling is half as long again as the high-rate steps before it (ExtractConfig.neural_steps_scale 1.25 with
+# settle_fraction 0.6: on the cpu preset 200 high-rate steps, as before, then 300 settling; the choice's candidates
+# keep a fifth, 100 steps each): on all 40 objects, clean, PathTrace +0.38 +- 0.09 and Relight +0.13 +- 0.13 dB over
+# the settling of 200 steps, and on the 12 Cycles coats, sheens and metals relit +0.21 to +0.79 dB, for 12% more TTO
+# steps (items 66, 67).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
-                                   "decoder_in_other_basis": False, "settle_fraction": 0.5,
+                                   "decoder_in_other_basis": False, "settle_fraction": 0.6, "select_fraction": 0.2,
                                    "settle_photo_loss": "decorrelated_debiased", "settle_lr": 1.0}
+NEURAL_STEPS_SCALE = 1.25  # ExtractConfig.neural_steps_scale's default (above)
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
 # into a uniform material's base colour (Cycles captures, relit - PBR: sheen +2.09, coat +3.71 dB, against +1.26,
@@ -99,7 +105,7 @@ VARIATIONS: dict[str, dict[str, Any]] = {"textured": {}, "uniform": {"consistenc
 RANGES: dict[str, Range] = {
     "view_resolution": Range(16, 1024), "blend_k": Range(1, 64), "texture_resolution": Range(16, 8192),
     "preview_resolution": Range(16, 4096), "preview_spp": Range(1, 4096), "eval_photos": Range(0, 1000),
-    "eval_spp": Range(1, 4096), "seed": Range(0, 2**31 - 1)}  # fmt: skip
+    "eval_spp": Range(1, 4096), "seed": Range(0, 2**31 - 1), "neural_steps_scale": Range(0.1, 10)}  # fmt: skip
 
 
 class PipelineError(Exception):
@@ -132,6 +138,9 @@ class ExtractConfig:
     paper's start: the LMRM's triplane; both need the shipped LMRM checkpoint, or `lmrm_weights`) or "random". The
     presets regularise the neural TTO against its PBR start (`NEURAL_FROM_PBR`), not against the LMRM (with the
     shipped LMRM that anchor costs 3-4 dB of clean PathTrace; docs/design-notes.md, items 26 and 34);
+    neural_steps_scale: the neural TTO from the PBR start runs this many times `tto.steps` (its settling the longer;
+    `NEURAL_STEPS_SCALE`), while the evaluation's variants and the PBR baseline are defined on `tto.steps` itself
+    (`variant_base`);
     view_resolution: size of the preset views made by prepare_views (pixels); blend_k: photos blended per pixel
     when views are synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview
     renders; eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); variation: how the
@@ -144,6 +153,7 @@ class ExtractConfig:
     preset_name: str = "cpu"
     tto: TTOConfig = field(default_factory=TTOConfig)
     init: Literal["lmrm", "random", "pbr"] = "pbr"
+    neural_steps_scale: float = NEURAL_STEPS_SCALE
     view_resolution: int = 64
     blend_k: int = 3
     texture_resolution: int = 128
@@ -195,14 +205,23 @@ class ExtractConfig:
         """Whether the neural TTO starts from the PBR solution with the consistency term, which the variations set."""
         return self.init == "pbr" and self.tto.lambda_consistency > 0
 
-    def tto_config(self) -> TTOConfig:
+    def variant_base(self) -> TTOConfig:
         """The TTO config with this config's init switch, seed and variation ("choose" is "textured" where there is
         no PBR start); the start anchor (reg "start") and the alternative basis only where there is a PBR start
-        (init "pbr"), no anchor and the one basis otherwise."""
+        (init "pbr"), no anchor and the one basis otherwise. The schedule the evaluation's variants are defined on
+        (eval/variants.py `variant_config`): its `steps` are `tto.steps`, not scaled."""
         variation = "textured" if self.variation == "choose" and not self.has_pbr_start() else self.variation
         tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[variation])
         if tto.init != "pbr":  # the anchor to the start and the alternative basis's start need the PBR start
             tto = replace(tto, reg="none" if tto.reg == "start" else tto.reg, alternative_basis="")
+        return tto
+
+    def tto_config(self) -> TTOConfig:
+        """The TTO the extraction runs: `variant_base()` with the neural phase from the PBR start
+        `neural_steps_scale` times as long."""
+        tto = self.variant_base()
+        if tto.init == "pbr":
+            tto = replace(tto, steps=max(1, round(tto.steps * self.neural_steps_scale)))
         return tto
 
     def torch_device(self) -> torch.device:

@@ -418,58 +418,68 @@ def test_every_eval_table_is_described_and_valid():
     # weight on every preset, and the default's own variant is the extraction's TTO.
     from neumatex_core.pipeline import ExtractConfig
 
-    extraction = ExtractConfig.preset("cpu").tto_config()
-    assert variant_config("ours", extraction) == variant_config("ours", TTOConfig.preset("cpu"))
-    ours = variant_config("ours", extraction)
+    # The variants are defined on the extraction's variant base (the TTO preset's steps); the extraction's own neural
+    # phase runs neural_steps_scale times as many
+    extraction, base = ExtractConfig.preset("cpu").tto_config(), ExtractConfig.preset("cpu").variant_base()
+    assert base == replace(extraction, steps=TTOConfig.preset("cpu").steps) and extraction.steps == 500
+    assert variant_config("ours", base) == variant_config("ours", TTOConfig.preset("cpu"))
+    ours = variant_config("ours", base)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
-    # the default's own variant (since 2026-12-03, design note 65) is the extraction's TTO; the default before it
-    # differs only in its settling's rate, the one before that also in its settling steps' loss, the one before that
-    # also in the settling phase, and the one before that also in the choice's length; the variants measured against
-    # those build on them
+    assert variant_config("pbr", base).steps == 400  # type: ignore[union-attr]
+    # the default's own variant (since 2026-12-03 afternoon, design note 67) is the extraction's TTO; the default
+    # before it differs only in its settling's length, the one before that also in its settling's rate, the one
+    # before that also in its settling steps' loss, the one before that also in the settling phase, and the one
+    # before that also in the choice's length; the variants measured against those build on them
     from neumatex_core.eval.variants import DEFAULT_VARIANT
 
-    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10" and DEFAULT_VARIANT in TABLES["default"]
+    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10_s500" and DEFAULT_VARIANT in TABLES["default"]
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
+    assert variant_config(DEFAULT_VARIANT, base) == extraction
+    tiny = ExtractConfig.preset("tiny")
+    assert variant_config(DEFAULT_VARIANT, tiny.variant_base()) == tiny.tto_config()  # the same scale on every preset
     assert extraction.settle_photo_loss == "decorrelated_debiased" and extraction.settle_lr == 1.0
-    assert variant_config("pbr", extraction).settle_photo_loss == ""
-    decdb = variant_config("pbr_start_default_settle_decdb", extraction)
-    assert decdb == replace(extraction, settle_lr=TTOConfig().settle_lr)
-    assert variant_config("pbr_start_default_settle_decdb_slr03", extraction) == replace(decdb, settle_lr=0.3)
-    settle05 = variant_config("pbr_start_default_settle05", extraction)
+    slr10 = variant_config("pbr_start_default_settle_decdb_slr10", base)
+    assert slr10 == replace(extraction, steps=400, settle_fraction=0.5, select_fraction=0.25)
+    assert variant_config("pbr", base).settle_photo_loss == ""  # type: ignore[union-attr]
+    decdb = variant_config("pbr_start_default_settle_decdb", base)
+    assert decdb == replace(slr10, settle_lr=TTOConfig().settle_lr)
+    assert variant_config("pbr_start_default_settle_decdb_slr03", base) == replace(decdb, settle_lr=0.3)
+    settle05 = variant_config("pbr_start_default_settle05", base)
     assert settle05 == replace(decdb, settle_photo_loss="")
-    assert extraction.settle_fraction == 0.5 and variant_config("pbr", extraction).settle_fraction == 0.0
-    assert variant_config("pbr_start_default_f025", extraction) == replace(settle05, settle_fraction=0.0)
+    assert slr10.settle_fraction == 0.5 and variant_config("pbr", base).settle_fraction == 0.0
+    assert variant_config("pbr_start_default_f025", base) == replace(settle05, settle_fraction=0.0)
     # the default with a smoothness term on its neural phase (design note 52); no other variant smooths
-    assert variant_config("pbr_start_default_smooth01", extraction) == replace(settle05, lambda_smooth=0.1)
-    assert extraction.lambda_smooth == 0.0 and variant_config("pbr", replace(extraction, lambda_smooth=1.0)) == \
-        variant_config("pbr", extraction)
+    assert variant_config("pbr_start_default_smooth01", base) == replace(settle05, lambda_smooth=0.1)
+    assert extraction.lambda_smooth == 0.0 and variant_config("pbr", replace(slr10, lambda_smooth=1.0)) == \
+        variant_config("pbr", base)
     # the default with coarse high-rate moves (design note 56); no other variant coarsens
-    assert variant_config("pbr_start_default_coarse8", extraction) == replace(settle05, coarse_factor=8)
-    assert extraction.coarse_factor == 1 and variant_config("pbr", replace(extraction, coarse_factor=8)) == \
-        variant_config("pbr", extraction)
+    assert variant_config("pbr_start_default_coarse8", base) == replace(settle05, coarse_factor=8)
+    assert extraction.coarse_factor == 1 and variant_config("pbr", replace(slr10, coarse_factor=8)) == \
+        variant_config("pbr", base)
     default = variant_config("pbr_start_default_alt_frozen", TTOConfig.preset("cpu"))
     assert default == replace(settle05, select_fraction=0.5, settle_fraction=0.0)
     # its choices scored with fewer samples, or on fewer pixels (tried 2026-11-28, design note 42)
-    assert variant_config("pbr_start_default_spp16", extraction) == replace(default, validation_spp=16)
-    assert variant_config("pbr_start_default_stride2", extraction) == replace(default, validation_stride=2)
+    assert variant_config("pbr_start_default_spp16", base) == replace(default, validation_spp=16)
+    assert variant_config("pbr_start_default_stride2", base) == replace(default, validation_stride=2)
     # that default with another seed, and its start fitted in a quarter of the time (design note 46)
-    assert variant_config("pbr_start_default_seed1", extraction) == replace(default, seed=1)
-    fit750 = variant_config("pbr_start_default_fit750", extraction)
+    assert variant_config("pbr_start_default_seed1", base) == replace(default, seed=1)
+    fit750 = variant_config("pbr_start_default_fit750", base)
     assert fit750 == replace(default, pbr_fit_steps=750, pbr_fit_lr=0.3, pbr_fit_batch=4096)
     # the default before the material decoder was left frozen in basis v4 (2026-11-28)
-    reuse = variant_config("pbr_start_default_reuse", extraction)
+    reuse = variant_config("pbr_start_default_reuse", base)
     assert reuse == replace(default, decoder_in_other_basis=True)
     # the default before the TTO after the choice went on from the choice's start (2026-11-28)
-    tuned = variant_config("pbr_start_default_tuned_0001", extraction)
+    tuned = variant_config("pbr_start_default_tuned_0001", base)
     assert tuned == replace(reuse, select_reuse_start=False)
     # the default before the decoder was fine-tuned (2026-11-27)
-    frozen = variant_config("pbr_start_consistent_select_uniform_f05_alt_v4_m3", extraction)
+    frozen = variant_config("pbr_start_consistent_select_uniform_f05_alt_v4_m3", base)
     assert frozen == replace(reuse, train_decoder=False, decoder_lr=TTOConfig().decoder_lr, select_reuse_start=False)
-    textured = replace(extraction, select_uniform=False, select_reuse_start=False)
-    assert ExtractConfig.preset("cpu", variation="textured").tto_config() == textured
+    textured = replace(slr10, select_uniform=False, select_reuse_start=False)
+    assert ExtractConfig.preset("cpu", variation="textured").tto_config() == replace(
+        extraction, select_uniform=False, select_reuse_start=False)
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
-    assert variant_config("pbr_start_consistent_01", extraction) == replace(
+    assert variant_config("pbr_start_consistent_01", base) == replace(
         textured, alternative_basis="", train_decoder=False, decoder_lr=0.1, decoder_in_other_basis=True,
         settle_fraction=0.0, settle_photo_loss="", settle_lr=TTOConfig().settle_lr)
-    assert variant_config("pbr", extraction).alternative_basis == ""  # type: ignore[union-attr]
-    assert not variant_config("pbr", extraction).train_decoder  # type: ignore[union-attr]
+    assert variant_config("pbr", base).alternative_basis == ""  # type: ignore[union-attr]
+    assert not variant_config("pbr", base).train_decoder  # type: ignore[union-attr]

@@ -130,7 +130,7 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
         meta = json.loads((object_dir / "meta.json").read_text())
         render_spp = int(meta["content"]["spp"])
     gt = ground_truth(object_dir)
-    tto = variant_config(variant, config.tto_config())
+    tto = variant_config(variant, config.variant_base())
     cap = load_capture(source)
     mesh = cap.load_mesh()
     env = harness_envmap(cap)

@@ -48,7 +48,7 @@ ROW_NAMES = {
     "pbr": "PBR baseline (NVDiffRecMC++: PBR head init, PBR TTO)",
     "ours": "Ours (neural material, LMRM init, unc. reg)",
     DEFAULT_VARIANT: "**Ours, the extraction's default** (neural from the PBR solution, consistency term, choices on "
-                     "held-out photos, settling phase from the full rate against the debiased loss)",
+                     "held-out photos, a longer settling phase from the full rate against the debiased loss)",
     "pbr_tuned_0001": "PBR baseline, its head fine-tuned like the default's PBR phase",
     "t2a_uv": "(a) UV", "t2b_uv_lmrm": "(b) UV + LMRM init", "t2c_uv_lmrm_unc": "(c) UV + LMRM init + unc. reg",
     "t2d_triplane": "(d) triplane", "t2e_triplane_lmrm": "(e) triplane + LMRM init",
