@@ -250,8 +250,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # and metals relit +0.21, +0.36, +0.79. The extraction's default since the afternoon of 2026-12-03 (notes 66, 67)
     "pbr_start_default_settle_decdb_slr10_s500": EXTRACTION_DEFAULT,
     # ... and its settling longer again: 1.5x the preset's steps (600 on cpu), the same 200 high-rate steps, then 400
-    # settling; the choice's candidates keep their 100 steps (a sixth). +25% of the TTO's steps over slr10 (design
-    # note 67)
+    # settling; the choice's candidates keep their 100 steps (a sixth). +11% of the TTO's steps. Against s500 on all
+    # 40 objects, clean, PathTrace +0.24 +- 0.09, Relight +0.26 +- 0.16; Cycles relit coat +0.30, sheen +0.17, metal
+    # +0.45. The next default's candidate (design note 67)
     "pbr_start_default_settle_decdb_slr10_s600": {**DEFAULT_67, "steps_scale": 1.5, "settle_fraction": 2 / 3,
                                                   "select_fraction": 1 / 6},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
