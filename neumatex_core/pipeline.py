@@ -221,7 +221,7 @@ class ExtractConfig:
         `neural_steps_scale` times as long."""
         tto = self.variant_base()
         if tto.init == "pbr":
-            tto = replace(tto, steps=max(1, round(tto.steps * self.neural_steps_scale)))
+            tto = tto.steps_scaled(self.neural_steps_scale)
         return tto
 
     def torch_device(self) -> torch.device:

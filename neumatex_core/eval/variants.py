@@ -395,6 +395,6 @@ def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:
     if overrides.get("steps") == 0:
         return None
     if "steps_scale" in overrides:  # as ExtractConfig.neural_steps_scale: the same on every preset's schedule
-        overrides["steps"] = max(1, round(base.steps * overrides.pop("steps_scale")))
+        overrides["steps"] = base.steps_scaled(overrides.pop("steps_scale")).steps
     paper = TTOConfig()
     return replace(base, **{**{f: getattr(paper, f) for f in REGULARISER_FIELDS}, **overrides})

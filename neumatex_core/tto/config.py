@@ -353,6 +353,11 @@ class TTOConfig:
                              f"needs init 'pbr' or 'random' and reg 'none' or 'start', got init {self.init!r}, "
                              f"reg {self.reg!r}")
 
+    def steps_scaled(self, scale: float) -> TTOConfig:
+        """This config with `scale` times its steps (at least one): a neural phase made longer on any preset's
+        schedule (pipeline.ExtractConfig.neural_steps_scale, the eval variants' "steps_scale")."""
+        return replace(self, steps=max(1, round(self.steps * scale)))
+
     def settle_start(self) -> int:
         """The first step (0-based) of the settling phase; `steps` when there is none."""
         return self.steps - round(self.settle_fraction * self.steps)
