@@ -257,6 +257,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # 40 objects, clean, PathTrace +0.24 +- 0.09, Relight +0.26 +- 0.16; Cycles relit coat +0.30, sheen +0.17, metal
     # +0.45. The extraction's default since the evening of 2026-12-03 (design notes 67, 68)
     "pbr_start_default_settle_decdb_slr10_s600": EXTRACTION_DEFAULT,
+    # ... and its settling longer once more: 1.75x the preset's steps (700 on cpu), the same 200 high-rate steps,
+    # then 500 settling; the choice's candidates keep their 100 steps (a seventh). +10% of the TTO's steps; each
+    # lengthening so far gained less (s400 -> s500 PathTrace +0.38, s500 -> s600 +0.24; design note 68)
+    "pbr_start_default_settle_decdb_slr10_s700": {**DEFAULT_68, "steps_scale": 1.75, "settle_fraction": 5 / 7,
+                                                  "select_fraction": 1 / 7},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
