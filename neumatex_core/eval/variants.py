@@ -266,6 +266,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # +0.35 +- 0.10, Relight +0.11 +- 0.19; on the Cycles captures relit coat +0.23, sheen +0.06, metal +0.34. The
     # extraction's default since the night of 2026-12-03 (design notes 68, 69)
     "pbr_start_default_settle_decdb_slr10_s700": EXTRACTION_DEFAULT,
+    # ... and its settling longer once more: 2x the preset's steps (800 on cpu), the same 200 high-rate steps, then
+    # 600 settling; the choice's candidates keep their 100 steps (an eighth). +9% of the TTO's steps; the next
+    # default's candidate (design note 69)
+    "pbr_start_default_settle_decdb_slr10_s800": {**DEFAULT_69, "steps_scale": 2.0, "settle_fraction": 3 / 4,
+                                                  "select_fraction": 1 / 8},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
