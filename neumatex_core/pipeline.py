@@ -86,8 +86,8 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # 1.75 with settle_fraction 5/7: on the cpu preset 200 high-rate steps, as before, then 500 settling; the choice's
 # candidates keep a seventh, 100 steps each): on all 40 objects, clean, PathTrace +0.38 +- 0.09 and Relight +0.13
 # +- 0.13 dB for the settling of 300 steps over 200, then PathTrace +0.24 +- 0.09 and Relight +0.26 +- 0.16 dB for
-# 400 over 300, then PathTrace +0.35 +- 0.10 and Relight +0.11 +- 0.19 dB for 500 over 400; on the Cycles captures relit
-# about +0.2 to +0.5 dB more at each step; each step about 10% more TTO steps (items 66-69).
+# 400 over 300, then PathTrace +0.35 +- 0.10 and Relight +0.11 +- 0.19 dB for 500 over 400; on the 12 Cycles coats,
+# sheens and metals relit +0.06 to +0.79 dB more at each step; each step about 10% more TTO steps (items 66-69).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
                                    "decoder_in_other_basis": False, "settle_fraction": 5 / 7, "select_fraction": 1 / 7,
