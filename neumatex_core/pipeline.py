@@ -82,17 +82,18 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # over the L2 settling at the same cost (items 53, 58 and 59). The settling's cosine starts again from the full rate
 # (settle_lr 1.0, not a tenth): on all 40 objects, clean, PathTrace +0.15 +- 0.13 and Relight +0.73 +- 0.14 dB over
 # a tenth, and on the 16 Cycles captures relit +0.55 (coat) to +5.23 dB (sheen), at the same cost (items 62-65).
-# The settling is two and a half times as long as the high-rate steps before it (ExtractConfig.neural_steps_scale
-# 1.75 with settle_fraction 5/7: on the cpu preset 200 high-rate steps, as before, then 500 settling; the choice's
-# candidates keep a seventh, 100 steps each): on all 40 objects, clean, PathTrace +0.38 +- 0.09 and Relight +0.13
-# +- 0.13 dB for the settling of 300 steps over 200, then PathTrace +0.24 +- 0.09 and Relight +0.26 +- 0.16 dB for
-# 400 over 300, then PathTrace +0.35 +- 0.10 and Relight +0.11 +- 0.19 dB for 500 over 400; on the 12 Cycles coats,
-# sheens and metals relit +0.06 to +0.79 dB more at each step; each step about 10% more TTO steps (items 66-69).
+# The settling is three times as long as the high-rate steps before it (ExtractConfig.neural_steps_scale 2.0 with
+# settle_fraction 3/4: on the cpu preset 200 high-rate steps, as before, then 600 settling; the choice's candidates keep
+# an eighth, 100 steps each): on all 40 objects, clean, PathTrace +0.38 +- 0.09 and Relight +0.13 +- 0.13 dB for the
+# settling of 300 steps over 200, then PathTrace +0.24 +- 0.09 and Relight +0.26 +- 0.16 dB for 400 over 300, then
+# PathTrace +0.35 +- 0.10 and Relight +0.11 +- 0.19 dB for 500 over 400, then PathTrace +0.20 +- 0.11 and Relight +0.12
+# +- 0.18 dB for 600 over 500; on the 12 Cycles coats, sheens and metals relit +0.00 to +0.79 dB more at each step; each
+# step about 10% more TTO steps (items 66-70).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
-                                   "decoder_in_other_basis": False, "settle_fraction": 5 / 7, "select_fraction": 1 / 7,
+                                   "decoder_in_other_basis": False, "settle_fraction": 3 / 4, "select_fraction": 1 / 8,
                                    "settle_photo_loss": "decorrelated_debiased", "settle_lr": 1.0}
-NEURAL_STEPS_SCALE = 1.75  # ExtractConfig.neural_steps_scale's default (above)
+NEURAL_STEPS_SCALE = 2.0  # ExtractConfig.neural_steps_scale's default (above)
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
 # into a uniform material's base colour (Cycles captures, relit - PBR: sheen +2.09, coat +3.71 dB, against +1.26,
