@@ -275,6 +275,11 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # +0.03, sheen +0.17, metal +0.00, diffuse +0.50. The extraction's default since late on 2026-12-03 (design notes
     # 69, 70)
     "pbr_start_default_settle_decdb_slr10_s800": EXTRACTION_DEFAULT,
+    # ... and each phase's result the mean iterate of its last 3/8 (the settling's second half on cpu: 300 of 800
+    # neural steps, 150 of the PBR phase's 400; TTOConfig.average_tail), against the noise each 8- or 32-spp step
+    # leaves in the planes, at no cost. Measured on an early default (design note 27, objects 0 and 1, half of each
+    # phase): PathTrace +0.28 and +0.31, within noise on two objects; the lever design note 70 names next
+    "pbr_start_default_settle_decdb_slr10_s800_avg": {**DEFAULT_70, "average_tail": 0.375},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
