@@ -278,7 +278,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # ... and each phase's result the mean iterate of its last 3/8 (the settling's second half on cpu: 300 of 800
     # neural steps, 150 of the PBR phase's 400; TTOConfig.average_tail), against the noise each 8- or 32-spp step
     # leaves in the planes, at no cost. Measured on an early default (design note 27, objects 0 and 1, half of each
-    # phase): PathTrace +0.28 and +0.31, within noise on two objects; the lever design note 70 names next
+    # phase): PathTrace +0.28 and +0.31, within noise on two objects. Against s800 on 33 objects, clean, PathTrace
+    # -0.10 +- 0.10, Relight +0.01 +- 0.11: no gain, not switched (design note 70)
     "pbr_start_default_settle_decdb_slr10_s800_avg": {**DEFAULT_70, "average_tail": 0.375},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
