@@ -83,12 +83,10 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # (settle_lr 1.0, not a tenth): on all 40 objects, clean, PathTrace +0.15 +- 0.13 and Relight +0.73 +- 0.14 dB over
 # a tenth, and on the 16 Cycles captures relit +0.55 (coat) to +5.23 dB (sheen), at the same cost (items 62-65).
 # The settling is three times as long as the high-rate steps before it (ExtractConfig.neural_steps_scale 2.0 with
-# settle_fraction 3/4: on the cpu preset 200 high-rate steps, as before, then 600 settling; the choice's candidates keep
-# an eighth, 100 steps each): on all 40 objects, clean, PathTrace +0.38 +- 0.09 and Relight +0.13 +- 0.13 dB for the
-# settling of 300 steps over 200, then PathTrace +0.24 +- 0.09 and Relight +0.26 +- 0.16 dB for 400 over 300, then
-# PathTrace +0.35 +- 0.10 and Relight +0.11 +- 0.19 dB for 500 over 400, then PathTrace +0.20 +- 0.11 and Relight +0.12
-# +- 0.18 dB for 600 over 500; on the 12 Cycles coats, sheens and metals relit +0.00 to +0.79 dB more at each step; each
-# step about 10% more TTO steps (items 66-70).
+# settle_fraction 3/4: on the cpu preset 200 high-rate steps, then 600 settling; the choice's candidates keep an
+# eighth, 100 steps each). Each 100 settling steps added gained clean PathTrace +0.38, +0.24, +0.35, +0.20 dB on all
+# 40 objects for about 10% more TTO steps, and did not lose relit on the Cycles captures (items 66-70 give the
+# figures).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
                                    "decoder_in_other_basis": False, "settle_fraction": 3 / 4, "select_fraction": 1 / 8,
