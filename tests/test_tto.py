@@ -23,7 +23,7 @@ from neumatex_core.lmrm.inference import LMRMPrediction
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
 from neumatex_core.tto import Anchor, TTOConfig, build_problem, optimise, oracle_weights, uncertainty_weights
-from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.data import PhotoSet, shuffled_pixels
 from neumatex_core.tto.loss import photometric_loss, regulariser, tonemap_slope
 from neumatex_core.tto.optimise import step_generator
 
@@ -288,7 +288,9 @@ def test_gradients_reach_only_the_triplane(example, truth_prediction):
 @pytest.mark.parametrize("variant", [{"estimator": "path"}, {"estimator": "cached"},
                                      {"optimizer": "gauss_newton", "train_decoder": True},
                                      {"control_variate": "settle", "settle_fraction": 2 / 3, "settle_spp": 4,
-                                      "cv_spp": 4, "cv_refresh": 2, "train_decoder": True}])  # fmt: skip
+                                      "cv_spp": 4, "cv_refresh": 2, "train_decoder": True},
+                                     {"pixel_order": "shuffled", "settle_fraction": 1 / 3,
+                                      "settle_spp": 4}])  # fmt: skip
 def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, tmp_path, variant):
     # cached: rebuilt at steps 0 and 4, so the stop after step 3 resumes inside the first cache's round; the control
     # variate's copies are made at steps 2 (the settling's first) and 4, so it resumes inside the first copy's round
@@ -1227,3 +1229,25 @@ def test_a_fine_tuned_decoder_starts_from_the_fit_the_basis_choice_made(example,
     assert all(torch.equal(before[k], v) for k, v in neural.decoder.state_dict().items())
     # and no gradient was computed for its weights (they were a quarter of the fit's time, thrown away)
     assert all(w.grad is None for w in neural.decoder_parameters())
+
+
+def test_shuffled_pixels_draw_every_pixel_once_an_epoch_whatever_the_batches(example):
+    # random reshuffling (TTOConfig.pixel_order "shuffled"): positions 0..size-1 are one permutation, the next size
+    # another, and a draw's pixels depend only on its positions, not on how the steps cut them
+    size = example.photos.size
+    whole = shuffled_pixels(size, 0, 2 * size + 5, seed=3)
+    for epoch in range(2):
+        assert torch.equal(whole[epoch * size:(epoch + 1) * size].sort().values, torch.arange(size))
+    assert not torch.equal(whole[:size], whole[size:2 * size])
+    cuts = [0, 7, size - 3, size + 1, 2 * size + 5]
+    pieces = [shuffled_pixels(size, a, b - a, seed=3) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    assert torch.equal(torch.cat(pieces), whole)
+    assert not torch.equal(shuffled_pixels(size, 0, size, seed=4), whole[:size])
+    # a TTO's steps: step k starts where the steps before it stopped (the settling's fewer, longer pixels included)
+    cfg = TTOConfig.preset("tiny", steps=9, pixels=64, spp=2, settle_fraction=1 / 3, settle_spp=4)
+    counts = [cfg.batch_at(k)[0] for k in range(cfg.steps)]
+    assert counts[0] == 64 and counts[-1] == 32
+    assert [cfg.pixels_before(k) for k in range(cfg.steps + 1)] == [sum(counts[:k]) for k in range(cfg.steps + 1)]
+    g = torch.Generator().manual_seed(0)
+    batch = example.photos.shuffled_batch(cfg.pixels_before(7), counts[7], 2, 3, g)
+    assert torch.equal(batch.index, whole[cfg.pixels_before(7):cfg.pixels_before(8)])

@@ -281,6 +281,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # phase): PathTrace +0.28 and +0.31, within noise on two objects. Against s800 on 33 objects, clean, PathTrace
     # -0.10 +- 0.10, Relight +0.01 +- 0.11: no gain, not switched (design note 70)
     "pbr_start_default_settle_decdb_slr10_s800_avg": {**DEFAULT_70, "average_tail": 0.375},
+    # ... with the photo pixels drawn in random reshuffling's order (every foreground pixel once an epoch) instead of
+    # independently each step: the same rays' count, less of the pixel draw's noise (design note 71)
+    "pbr_start_default_settle_decdb_slr10_s800_rr": {**DEFAULT_70, "pixel_order": "shuffled"},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result

@@ -45,6 +45,7 @@ MaterialKind = Literal["neural", "pbr"]
 EstimatorKind = Literal["cached", "path"]
 OptimizerKind = Literal["adam", "gauss_newton"]
 ControlVariateKind = Literal["off", "settle", "all"]
+PixelOrderKind = Literal["random", "shuffled"]
 PRESETS = ("tiny", "cpu", "gpu")
 BIG = 1 << 24
 # consistency_rho_value of the "uniform" variation (one material over the whole object): on the Cycles captures,
@@ -186,6 +187,11 @@ class TTOConfig:
     # phase (its copy made at the phase's first step), "all": in every step (copies at step 0 and at the settling
     # phase's first step); either way a new copy every cv_refresh steps after those (0: none)
     control_variate: ControlVariateKind = "off"
+    # the photo pixels each step draws: "random" (uniformly, with replacement, each step on its own) or "shuffled"
+    # (random reshuffling: the draws run through one random permutation of every foreground pixel after another, so
+    # over an epoch each pixel is drawn once and none is left out or drawn five times; tto/data.py
+    # `shuffled_pixels`, docs/design-notes.md item 71)
+    pixel_order: PixelOrderKind = "random"
     cv_spp: int = 32
     cv_refresh: int = 0
     train_decoder: bool = False
@@ -390,6 +396,13 @@ class TTOConfig:
         if step < self.settle_start():
             return self.pixels, self.spp
         return max(1, self.pixels * self.spp // self.settle_spp), self.settle_spp
+
+    def pixels_before(self, step: int) -> int:
+        """Photo pixels the steps before `step` drew (`batch_at`): step `step`'s first draw position."""
+        start = self.settle_start()
+        if step <= start:
+            return step * self.pixels
+        return start * self.pixels + (step - start) * self.batch_at(start)[0]
 
     def total_steps(self) -> int:
         """Adam steps of the whole TTO: with init "pbr", the PBR phase's and then the neural phase's."""

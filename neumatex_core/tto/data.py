@@ -3,13 +3,15 @@
 `PhotoSet` holds every photo's display values (what the capture's tonemap T makes of radiance), its camera in
 the normalised frame and its own exposure multiplier (`Frame.exposure`: photo f shows T(exposure[f] * radiance));
 `batch(n, spp, generator)` draws n foreground pixels uniformly over all photos and gives `spp` jittered rays through
-each, so a step costs n * spp paths whatever the photos' size.
+each, so a step costs n * spp paths whatever the photos' size; `shuffled_batch` draws them in random reshuffling's
+order instead (`shuffled_pixels`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import torch
@@ -19,6 +21,26 @@ from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.geometry.raycast import RayCaster
+
+
+@lru_cache(maxsize=4)
+def _epoch_order(size: int, seed: int, epoch: int) -> torch.Tensor:
+    """[size] int64 (CPU): epoch `epoch`'s random permutation of 0..size-1, a function of (seed, epoch) alone."""
+    generator = torch.Generator().manual_seed(seed * 1_000_003 + 900_000_011 + epoch)
+    return torch.randperm(size, generator=generator)
+
+
+def shuffled_pixels(size: int, start: int, n: int, seed: int) -> torch.Tensor:
+    """[n] int64 (CPU): the pixels at draw positions start..start + n - 1 of a sequence of random permutations of
+    0..size-1, one after another (random reshuffling: each epoch of `size` draws takes every pixel once). A step's
+    pixels depend only on (seed, its first position), so a stopped TTO resumes bit for bit."""
+    parts, position, end = [], start, start + n
+    while position < end:
+        epoch, offset = divmod(position, size)
+        take = min(end - position, size - offset)
+        parts.append(_epoch_order(size, seed, epoch)[offset:offset + take])
+        position += take
+    return torch.cat(parts)
 
 
 @dataclass
@@ -108,6 +130,10 @@ class PhotoSet:
     def batch(self, n: int, spp: int, generator: torch.Generator) -> RayBatch:
         """n pixels drawn uniformly (with replacement) from all foreground pixels, spp jittered rays each."""
         return self.rays(torch.randint(0, self.size, (n,), generator=generator, device=self.device), spp, generator)
+
+    def shuffled_batch(self, start: int, n: int, spp: int, seed: int, generator: torch.Generator) -> RayBatch:
+        """The n pixels at draw positions start.. of `shuffled_pixels` (seeded by `seed`), spp jittered rays each."""
+        return self.rays(shuffled_pixels(self.size, start, n, seed).to(self.device), spp, generator)
 
     def rays(self, idx: torch.Tensor, spp: int, generator: torch.Generator) -> RayBatch:
         """The foreground pixels idx [n] (int64, into 0..size-1), spp jittered rays each."""

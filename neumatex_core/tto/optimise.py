@@ -442,7 +442,10 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
             photo, mse_t = cached.loss(g)
         else:
             pixels, spp = config.batch_at(step)
-            batch = problem.photos.batch(pixels, spp, g)
+            if config.pixel_order == "shuffled":
+                batch = problem.photos.shuffled_batch(config.pixels_before(step), pixels, spp, config.seed, g)
+            else:
+                batch = problem.photos.batch(pixels, spp, g)
             cv_at = config.cv_round(step)
             if cv_at >= 0 and (cv_state is None or cv_state["round"] != cv_at):  # a new round: this step's field
                 trained = params.trained_decoder()
