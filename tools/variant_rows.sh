@@ -1,23 +1,33 @@
 #!/bin/bash
-# One eval variant's clean, paired rows on benchmark objects that a fresh machine lacks the data for
-# (docs/design-notes.md item 58): per object, synthesise it (`neumatex synth --shard I/40`, bit for bit the data
-# the stored rows were made on), render its references, run the variant (bench/variants_clean.py), each step
-# skipped or resumed where already done; an object whose row the variant already has is skipped whole (no data
-# made for it). Run two side by side on two cores, e.g.
+# Eval variants' clean, paired rows on benchmark objects that a fresh machine lacks the data for
+# (docs/design-notes.md items 58 and 71): per object, synthesise it (`neumatex synth --shard I/40`, bit for bit the
+# data the stored rows were made on), render its references, run the variants (bench/variants_clean.py), each step
+# skipped or resumed where already done; an object on which every variant already has a row is skipped whole (no
+# data made for it). VARIANTS is one name or several, comma-separated. With SINCE (UTC, e.g. 2026-12-03T22:20:00)
+# only rows written since then count, so a baseline is run again on this machine beside a candidate: another
+# machine's rows need not be this one's (item 71: the default's row on object 0 moved by 2.4 dB). Run two side by
+# side on two cores, e.g.
 #   nohup tools/variant_rows.sh pbr_start_default_settle_decdb 18 2 39 > runs/rows-a.log 2>&1 &
 #   nohup tools/variant_rows.sh pbr_start_default_settle_decdb 19 2 39 > runs/rows-b.log 2>&1 &
-# usage: tools/variant_rows.sh VARIANT FIRST STEP LAST
+#   SINCE=2026-12-03T22:20:00 nohup tools/variant_rows.sh BASELINE,CANDIDATE 0 2 39 > runs/rows-c.log 2>&1 &
+# usage: [SINCE=ISO_TIME] tools/variant_rows.sh VARIANTS FIRST STEP LAST
 set -u
 cd "$(dirname "$0")/.."
 export NEUMATEX_SHARED=${NEUMATEX_SHARED:-$(cd .. && pwd)/shared} OMP_NUM_THREADS=1
-variant=$1
+variants=$1
+since=${SINCE:-}
 mkdir -p data/benchmark-test
-has_row() {  # whether bench/results/variants_clean.jsonl already holds the variant's row on object $1
-  grep -F "\"object\": \"$1\"" bench/results/variants_clean.jsonl 2>/dev/null | grep -qF "\"variant\": \"$variant\""
+has_rows() {  # whether bench/results/variants_clean.jsonl holds every variant's row on object $1 (since $since)
+  local v
+  for v in ${variants//,/ }; do
+    grep -F "\"object\": \"$1\"" bench/results/variants_clean.jsonl 2>/dev/null | grep -F "\"variant\": \"$v\"" \
+      | grep -o '"timestamp": "[^"]*"' | cut -d'"' -f4 | awk -v s="$since" '$0 >= s {found=1} END {exit !found}' \
+      || return 1
+  done
 }
 for ((i=$2; i<=$4; i+=$3)); do
   id=$(printf "test-%06d" "$i")
-  if has_row "$id"; then echo "$(date -u +%T) $id already has a row"; continue; fi
+  if has_rows "$id"; then echo "$(date -u +%T) $id already has its rows"; continue; fi
   echo "$(date -u +%T) $id synth"
   if [ ! -f "data/benchmark-test/$id/transforms.json" ]; then
     # one synth at a time: shards of one split share its manifest
@@ -26,7 +36,8 @@ for ((i=$2; i<=$4; i+=$3)); do
   fi
   echo "$(date -u +%T) $id references"
   .venv/bin/neumatex references data/benchmark-test --objects "$id" --no-progress || { echo "$id: references failed"; continue; }
-  echo "$(date -u +%T) $id variant"
-  .venv/bin/python bench/variants_clean.py --variants "$variant" --objects "$id" --workers 1 --work "runs/rows-$variant-$i"
+  echo "$(date -u +%T) $id variants"
+  .venv/bin/python bench/variants_clean.py --variants "$variants" --objects "$id" --workers 1 \
+    --work "runs/rows-${variants//,/+}-$i" ${since:+--since "$since"}
   echo "$(date -u +%T) $id done"
 done
