@@ -287,6 +287,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # ... and the settling's rays over twice the pixels at half the samples (512 x 16 a step; item 61 measured it
     # neutral with each step's own uniform draw, +0.07 +- 0.16 PathTrace on 21 objects)
     "pbr_start_default_settle_decdb_slr10_s800_rr16": {**DEFAULT_70, "pixel_order": "shuffled", "settle_spp": 16},
+    # ... and each half of a pixel's samples Latin-hypercube stratified at the first bounce
+    "pbr_start_default_settle_decdb_slr10_s800_rr16_lhs": {**DEFAULT_70, "pixel_order": "shuffled", "settle_spp": 16,
+                                                           "stratified": True},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result

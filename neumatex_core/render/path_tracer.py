@@ -42,6 +42,19 @@ class PathTracerConfig:
     strategy: Literal["mis", "light", "bsdf"] = "mis"
 
 
+def latin_hypercube(n: int, strata: int, dims: int, generator: torch.Generator) -> torch.Tensor:
+    """[n, dims] numbers in [0, 1) on the generator's device: in each run of `strata` consecutive rows, each column
+    is a random permutation of the strata's cells [k / strata, (k + 1) / strata), jittered within its cell, the
+    columns permuted independently (Latin-hypercube sampling). Each row alone is uniform on [0, 1)^dims."""
+    if n % strata:
+        raise ValueError(f"Latin-hypercube runs of {strata} rows need a multiple of {strata} rows, got {n}")
+    runs = n // strata
+    device = generator.device
+    cells = torch.rand(runs, dims, strata, generator=generator, device=device).argsort(-1).transpose(1, 2)
+    jitter = torch.rand(runs, strata, dims, generator=generator, device=device)  # cells: [runs, strata, dims]
+    return ((cells + jitter) / strata).reshape(n, dims)
+
+
 def balance_heuristic(pdf_a: torch.Tensor, pdf_b: torch.Tensor) -> torch.Tensor:
     """MIS weight [N] of technique a: pdf_a / (pdf_a + pdf_b) (0 where both are 0)."""
     total = pdf_a + pdf_b
@@ -86,9 +99,13 @@ class PathTracer:
         return (image / spp).reshape(camera.height, camera.width, 3)
 
     def render_rays(self, scene: Scene, origins: torch.Tensor, directions: torch.Tensor,
-                    generator: torch.Generator) -> torch.Tensor:
-        """Radiance [N, 3] along camera rays origins [N, 3], unit directions [N, 3] (one sample each)."""
+                    generator: torch.Generator, strata: int = 1) -> torch.Tensor:
+        """Radiance [N, 3] along camera rays origins [N, 3], unit directions [N, 3] (one sample each). strata > 1:
+        each run of `strata` consecutive rays (N a multiple of it; e.g. one pixel's samples, or half of them) takes
+        Latin-hypercube random numbers for its first bounce's light and BSDF samples (`latin_hypercube`): each
+        ray's numbers are uniform, so every ray's expectation is unchanged, and the run's mean is less noisy."""
         cfg = self.config
+        first = latin_hypercube(origins.shape[0], strata, 5, generator) if strata > 1 else None
         device = origins.device
         n = origins.shape[0]
         radiance = torch.zeros(n, 3, device=device)
@@ -121,6 +138,8 @@ class PathTracer:
             material = scene.material.at(si)
             wo = si.to_local(si.wo)
             rnd = torch.rand(keep.numel(), 6, generator=generator, device=device)
+            if depth == 0 and first is not None:
+                rnd[:, :5] = first[active]
 
             # Next-event estimation: a direction from the map, a shadow ray, MIS against BSDF sampling.
             light_dir, light_pdf, light_le = env.sample(rnd[:, 0:2])

@@ -192,6 +192,10 @@ class TTOConfig:
     # over an epoch each pixel is drawn once and none is left out or drawn five times; tto/data.py
     # `shuffled_pixels`, docs/design-notes.md item 71)
     pixel_order: PixelOrderKind = "random"
+    # each half of a pixel's samples takes Latin-hypercube random numbers for its first bounce's light and BSDF
+    # samples (`PathTracer.render_rays` strata): the same expectation per sample, a quieter half-mean
+    # (docs/design-notes.md item 71)
+    stratified: bool = False
     cv_spp: int = 32
     cv_refresh: int = 0
     train_decoder: bool = False
@@ -323,6 +327,8 @@ class TTOConfig:
             raise ValueError("TTO optimizer 'gauss_newton' probes the curvature through the traced photo batch of a "
                              f"triplane: it needs estimator 'path' and field 'triplane', got {self.estimator!r}, "
                              f"{self.field!r}")
+        if self.control_variate != "off" and self.stratified:
+            raise ValueError("TTO control_variate renders its copy with plain random numbers: it needs stratified off")
         if self.control_variate != "off" and self.estimator != "path":
             raise ValueError("TTO control_variate renders the traced photo batch a second time: it needs estimator "
                              f"'path', got {self.estimator!r}")

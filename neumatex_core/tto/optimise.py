@@ -456,7 +456,8 @@ def optimise(problem: TTOProblem, config: TTOConfig, progress: Progress | None =
                 assert cv_state is not None
                 variate = _control_variate(problem, config, scene, tracer, cv_state)
             twin = clone_generator(g) if cv_at >= 0 else None
-            radiance = tracer.render_rays(scene, batch.origins, batch.directions, g)
+            strata = spp // 2 if config.stratified and spp >= 4 else 1  # each half on its own (the decorrelated losses)
+            radiance = tracer.render_rays(scene, batch.origins, batch.directions, g, strata)
             if variate is not None and twin is not None:
                 radiance = variate.radiance(radiance, batch.origins, batch.directions, batch.index, spp, twin)
             scale = problem.photo_scale(batch.frame, batch.exposure)
