@@ -289,7 +289,7 @@ def test_gradients_reach_only_the_triplane(example, truth_prediction):
                                      {"optimizer": "gauss_newton", "train_decoder": True},
                                      {"control_variate": "settle", "settle_fraction": 2 / 3, "settle_spp": 4,
                                       "cv_spp": 4, "cv_refresh": 2, "train_decoder": True},
-                                     {"pixel_order": "shuffled", "settle_fraction": 1 / 3,
+                                     {"pixel_order": "shuffled", "stratified": True, "settle_fraction": 1 / 3,
                                       "settle_spp": 4}])  # fmt: skip
 def test_stop_and_resume_equals_an_uninterrupted_run(example, truth_prediction, tmp_path, variant):
     # cached: rebuilt at steps 0 and 4, so the stop after step 3 resumes inside the first cache's round; the control
@@ -348,6 +348,10 @@ def test_misconfigured_variants_fail_clearly(example):
                       example.capture.tonemap, pred, example.basis)  # fmt: skip
     with pytest.raises(ValueError, match="field"):
         replace(cfg, field="mesh").check()  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="pixel_order"):
+        replace(cfg, pixel_order="sorted").check()  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="stratified off"):
+        replace(cfg, control_variate="all", stratified=True).check()
     assert step_generator(cfg, 3, torch.device("cpu")).initial_seed() == step_generator(cfg, 3, torch.device("cpu")
                                                                                        ).initial_seed()
 
