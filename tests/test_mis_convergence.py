@@ -162,7 +162,6 @@ def test_mis_on_a_sun_rough_specular(setup) -> None:
     assert agree(mis, bsdf) < 4 and agree(mis, light) < 4 and agree(light, bsdf) < 4, (mis, light, bsdf)
 
 
-
 def broad_sky_map() -> EnvironmentMap:
     """64 x 32, sky 1 plus a broad bright lobe (peak 31) towards the camera's side: a map whose light samples a
     stratification can spread (the sun map's light samples almost all land on its four sun texels)."""

@@ -17,13 +17,15 @@ export NEUMATEX_SHARED=${NEUMATEX_SHARED:-$(cd .. && pwd)/shared} OMP_NUM_THREAD
 variants=$1
 since=${SINCE:-}
 mkdir -p data/benchmark-test
-has_rows() {  # whether bench/results/variants_clean.jsonl holds every variant's row on object $1 (since $since)
-  local v
-  for v in ${variants//,/ }; do
-    grep -F "\"object\": \"$1\"" bench/results/variants_clean.jsonl 2>/dev/null | grep -F "\"variant\": \"$v\"" \
-      | grep -o '"timestamp": "[^"]*"' | cut -d'"' -f4 | awk -v s="$since" '$0 >= s {found=1} END {exit !found}' \
-      || return 1
-  done
+has_rows() {  # whether every variant has its row on object $1 (since $since), by bench/variants_clean.py's own rule
+  .venv/bin/python - "$1" "$variants" "$since" <<'PY'
+import sys
+sys.path.insert(0, "bench")
+from variants_clean import stored_rows
+obj, variants, since = sys.argv[1:]
+rows = stored_rows(since)
+sys.exit(0 if all(obj in rows.get(v, {}) for v in variants.split(",")) else 1)
+PY
 }
 for ((i=$2; i<=$4; i+=$3)); do
   id=$(printf "test-%06d" "$i")

@@ -50,8 +50,9 @@ def latin_hypercube(n: int, strata: int, dims: int, generator: torch.Generator) 
         raise ValueError(f"Latin-hypercube runs of {strata} rows need a multiple of {strata} rows, got {n}")
     runs = n // strata
     device = generator.device
+    # each run's column k: a permutation of the cells 0..strata-1, [runs, strata, dims]
     cells = torch.rand(runs, dims, strata, generator=generator, device=device).argsort(-1).transpose(1, 2)
-    jitter = torch.rand(runs, strata, dims, generator=generator, device=device)  # cells: [runs, strata, dims]
+    jitter = torch.rand(runs, strata, dims, generator=generator, device=device)
     return ((cells + jitter) / strata).reshape(n, dims)
 
 
