@@ -878,9 +878,9 @@ def test_iterate_averaging_returns_the_tails_mean_and_resumes(example, truth_pre
 def test_settling_phase_traces_the_same_rays_at_more_samples_on_its_own_schedule(example, truth_prediction,
                                                                                   monkeypatch):
     """settle_fraction 0.5 over 8 steps: steps 0-3 draw 64 pixels x 2 spp, steps 4-7 16 x 8 (the same rays); the
-    rate falls by a cosine from lr to lr x lr_final over steps 0-3, then from lr x settle_lr over steps 4-7; steps
-    4-7 take settle_photo_loss; Adam gets the config's epsilon and betas; the PBR phase of init "pbr" neither
-    settles nor takes them; and the cached estimator, whose cache holds one sample count, is refused."""
+    rate falls by a cosine from lr to lr x lr_final over steps 0-3, then from lr x settle_lr to that x settle_lr_final
+    over steps 4-7; steps 4-7 take settle_photo_loss; Adam gets the config's epsilon and betas; the PBR phase of init
+    "pbr" neither settles nor takes them; and the cached estimator, whose cache holds one sample count, is refused."""
     from neumatex_core.tto import pbr_start
     from neumatex_core.tto.optimise import learning_rate, make_optimizer
 
@@ -898,6 +898,10 @@ def test_settling_phase_traces_the_same_rays_at_more_samples_on_its_own_schedule
     rates = [learning_rate(cfg, s) for s in range(8)]
     assert rates[0] == pytest.approx(0.1) and rates[4] == pytest.approx(0.05)
     assert rates[0] > rates[1] > rates[2] > rates[3] > 0.01 and rates[4] > rates[5] > rates[6] > rates[7] > 0.005
+    low = replace(cfg, settle_lr_final=0.01)  # the settling's cosine ends lower; the steps before it are the same
+    assert [learning_rate(low, s) for s in range(4)] == rates[:4]
+    assert [learning_rate(low, s) for s in range(4, 8)] == pytest.approx(
+        [0.05 * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * (s - 4) / 4))) for s in range(4, 8)])
     plain = replace(cfg, settle_fraction=0.0)
     assert plain.batch_at(7) == (64, 2)
     assert [learning_rate(plain, s) for s in range(8)] == pytest.approx(

@@ -294,6 +294,16 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # no better than rr16; not run from the PBR start, design note 71)
     "pbr_start_default_settle_decdb_slr10_s800_rr16_lhs": {**DEFAULT_70, "pixel_order": "shuffled", "settle_spp": 16,
                                                            "stratified": True},
+    # ... the default's settling longer once more: 2.25x the preset's steps (900 on cpu), the same 200 high-rate
+    # steps, then 700 settling; the choice's candidates keep their 100 steps (a ninth). +8% of the TTO's steps
+    # (each 100 settling steps before gained PathTrace +0.38, +0.24, +0.35, +0.20; design note 72)
+    "pbr_start_default_settle_decdb_slr10_s900": {**DEFAULT_70, "steps_scale": 2.25, "settle_fraction": 7 / 9,
+                                                  "select_fraction": 1 / 9},
+    # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
+    # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
+    # the truth (item 49) the last rate set how much of it a TTO keeps (design note 72)
+    "pbr_start_default_settle_decdb_slr10_s800_lf03": {**DEFAULT_70, "settle_lr_final": 1 / 30},
+    "pbr_start_default_settle_decdb_slr10_s800_lf01": {**DEFAULT_70, "settle_lr_final": 0.01},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
@@ -422,7 +432,8 @@ REGULARISER_FIELDS = ("reg", "lambda_reg", "lambda_consistency", "consistency_si
                       "consistency_rho_value", "consistency_latent_value", "select_anchor", "select_uniform",
                       "select_fraction", "alternative_basis", "basis_margin_db", "train_decoder", "decoder_lr",
                       "select_reuse_start", "decoder_in_other_basis", "validation_spp", "validation_stride",
-                      "settle_fraction", "settle_photo_loss", "settle_lr", "lambda_smooth", "coarse_factor")
+                      "settle_fraction", "settle_photo_loss", "settle_lr", "settle_lr_final", "lambda_smooth",
+                      "coarse_factor")
 
 
 def variant_config(name: str, base: TTOConfig) -> TTOConfig | None:

@@ -67,6 +67,7 @@ RANGES: dict[str, Range] = {
     "pbr_fit_batch": Range(1, 1 << 24), "pbr_bsdf_fit_steps": Range(0, 100_000),
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "settle_fraction": Range(0, 1), "settle_spp": Range(1, 4096), "settle_lr": Range(0, 100, lo_open=True),
+    "settle_lr_final": Range(0, 1, lo_open=True),
     "adam_beta1": Range(0, 0.9999), "adam_beta2": Range(0, 0.99999), "adam_eps": Range(0, 1),
     "gn_lr_scale": Range(0, 100, lo_open=True), "gn_beta2": Range(0, 0.99999), "gn_damping": Range(0, 1e6),
     "gn_max_step": Range(0, 100, lo_open=True), "gn_warmup": Range(0, 100_000), "cv_spp": Range(1, 4096),
@@ -149,14 +150,17 @@ class TTOConfig:
     average_tail: float = 0.0
     # the last settle_fraction of the steps settle: each traces the same rays as before at settle_spp samples per
     # pixel (pixels x spp / settle_spp pixels), and the learning rate starts a second cosine from lr x settle_lr
-    # down to lr x settle_lr x lr_final. Measured (docs/design-notes.md, item 50): from the ground truth, half the
-    # steps settling keep 34.6 of its 50.0 dB (33.4 without); from the PBR start, all 40 benchmark objects,
+    # down to lr x settle_lr x settle_lr_final. Measured (docs/design-notes.md, item 50): from the ground truth, half
+    # the steps settling keep 34.6 of its 50.0 dB (33.4 without); from the PBR start, all 40 benchmark objects,
     # PathTrace +0.44 +- 0.13 dB. The extraction presets set 3/4 and settle_lr 1.0 (pipeline.NEURAL_FROM_PBR; the
     # full rate again: item 65; 3/4 of 2x the steps: item 70); 0 here, so a bare TTOConfig (the PBR baseline, the
     # paper's variants) is the plain cosine schedule.
     settle_fraction: float = 0.0
     settle_spp: int = 32
     settle_lr: float = 0.1
+    # where the settling's cosine ends, as a fraction of where it starts (lr_final's part in the steps before): the
+    # rate of the last steps sets how far each step's noise moves the result (docs/design-notes.md items 49, 72)
+    settle_lr_final: float = 0.1
     # the settling steps' photometric loss ("" = photo_loss): e.g. the L2 moves the material far at the high rate
     # and a loss least at a noise-free photo settles it (docs/design-notes.md, item 53)
     settle_photo_loss: Literal[PhotoLossKind, ""] = ""

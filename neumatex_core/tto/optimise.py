@@ -277,15 +277,16 @@ class IterateAverage:
 
 def learning_rate(config: TTOConfig, step: int) -> float:
     """Cosine decay from lr to lr * lr_final over the steps; with settle_fraction, over the steps before the settling
-    phase, which has its own cosine from lr * settle_lr to lr * settle_lr * lr_final; with lr_warmup, times a linear
-    ramp from 1 / lr_warmup to 1 over the first lr_warmup steps."""
+    phase, which has its own cosine from lr * settle_lr to lr * settle_lr * settle_lr_final; with lr_warmup, times a
+    linear ramp from 1 / lr_warmup to 1 over the first lr_warmup steps."""
     start = config.settle_start()
     if step < start:
-        t, top = step / max(start, 1), config.lr
+        t, top, final = step / max(start, 1), config.lr, config.lr_final
     else:
-        t, top = min((step - start) / max(config.steps - start, 1), 1.0), config.lr * config.settle_lr
+        t = min((step - start) / max(config.steps - start, 1), 1.0)
+        top, final = config.lr * config.settle_lr, config.settle_lr_final
     ramp = min(1.0, (step + 1) / config.lr_warmup) if config.lr_warmup > 0 else 1.0
-    return ramp * top * (config.lr_final + (1 - config.lr_final) * 0.5 * (1 + math.cos(math.pi * t)))
+    return ramp * top * (final + (1 - final) * 0.5 * (1 + math.cos(math.pi * t)))
 
 
 def step_generator(config: TTOConfig, step: int, device: torch.device) -> torch.Generator:
