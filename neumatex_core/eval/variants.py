@@ -304,6 +304,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the truth (item 49) the last rate set how much of it a TTO keeps (design note 72)
     "pbr_start_default_settle_decdb_slr10_s800_lf03": {**DEFAULT_70, "settle_lr_final": 1 / 30},
     "pbr_start_default_settle_decdb_slr10_s800_lf01": {**DEFAULT_70, "settle_lr_final": 0.01},
+    # ... the default with its settling's cosine from 1.5x the high-rate steps' rate (0.3 instead of 0.2): the 32-spp
+    # settling steps are quieter than the 8-spp ones, and a higher settling rate has gained wherever the photos are
+    # clean (0.1 -> 0.3 -> 1.0 of lr; design notes 62, 65). The same steps, no time (design note 72)
+    "pbr_start_default_settle_decdb_slr10_s800_slr15": {**DEFAULT_70, "settle_lr": 1.5},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
     # between variants. Only an object whose margin lies in [0, 0.25) dB changes: any other gets slr10's result
