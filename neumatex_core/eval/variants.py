@@ -296,17 +296,22 @@ VARIANTS: dict[str, dict[str, Any]] = {
                                                            "stratified": True},
     # ... the default's settling longer once more: 2.25x the preset's steps (900 on cpu), the same 200 high-rate
     # steps, then 700 settling; the choice's candidates keep their 100 steps (a ninth). +8% of the TTO's steps
-    # (each 100 settling steps before gained PathTrace +0.38, +0.24, +0.35, +0.20; design note 72)
+    # (each 100 settling steps before gained PathTrace +0.38, +0.24, +0.35, +0.20). Against s800 on this machine,
+    # objects 0-16, 18, 20: PathTrace +0.20 +- 0.12, Relight +0.19 +- 0.07; eight Cycles captures relit +0.56 (+0.17
+    # without teapot-diffuse). The next candidate (design note 72)
     "pbr_start_default_settle_decdb_slr10_s900": {**DEFAULT_70, "steps_scale": 2.25, "settle_fraction": 7 / 9,
                                                   "select_fraction": 1 / 9},
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
     # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
-    # the truth (item 49) the last rate set how much of it a TTO keeps (design note 72)
+    # the truth on object 0 PathTrace 36.62 / 36.14 against the default's 36.63 (0.3 instead: 35.89): not run from
+    # the PBR start (design note 72)
     "pbr_start_default_settle_decdb_slr10_s800_lf03": {**DEFAULT_70, "settle_lr_final": 1 / 30},
     "pbr_start_default_settle_decdb_slr10_s800_lf01": {**DEFAULT_70, "settle_lr_final": 0.01},
     # ... the default with its settling's cosine from 1.5x the high-rate steps' rate (0.3 instead of 0.2): the 32-spp
     # settling steps are quieter than the 8-spp ones, and a higher settling rate has gained wherever the photos are
-    # clean (0.1 -> 0.3 -> 1.0 of lr; design notes 62, 65). The same steps, no time (design note 72)
+    # clean (0.1 -> 0.3 -> 1.0 of lr; design notes 62, 65). The same steps, no time. Against s800 on objects 0-13
+    # PathTrace +0.04 +- 0.05, Relight +0.09 +- 0.04; eight Cycles captures relit +0.54 but the metals -0.37 and
+    # -0.09: no gain (design note 72)
     "pbr_start_default_settle_decdb_slr10_s800_slr15": {**DEFAULT_70, "settle_lr": 1.5},
     # ... and the textured material kept whenever it scores better on the held-out photos (select_margin_db 0, not
     # 0.25): across the stored variants textured was ahead on PathTrace on 14 of the 19 objects whose choice flipped
