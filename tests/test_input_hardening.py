@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from capture_fixtures import read_transforms, write_capture, write_transforms, zip_capture
-from zip_bombs import bomb_zip
+from zip_bombs import bomb_zip, folder_bytes
 
 from neumatex_core.capture import CaptureError, Problem, extract_zip, load_capture, validate_capture
 from neumatex_core.capture.archive import DEFAULT_MAX_TOTAL_BYTES, name_problem
@@ -29,17 +29,6 @@ from neumatex_core.lighting.envmap import NEGATIVE_NOISE_FRACTION, EnvironmentMa
 
 def messages(problems: list[Problem]) -> str:
     return "\n".join(map(str, problems))
-
-
-def folder_bytes(folder: Path) -> int:
-    total = 0
-    for dirpath, _, files in os.walk(folder):
-        for f in files:
-            try:
-                total += os.stat(os.path.join(dirpath, f)).st_size
-            except FileNotFoundError:
-                pass
-    return total
 
 
 @contextmanager

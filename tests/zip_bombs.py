@@ -3,6 +3,7 @@ local headers, data, central directory), so a 4,000 x 1 MiB bomb takes milliseco
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -51,3 +52,16 @@ def overlapping_stored_zip(path: Path) -> Path:
     end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, 2, 2, len(central), len(local), 0)
     path.write_bytes(local + central + end)
     return path
+
+
+def folder_bytes(folder: Path) -> int:
+    """The bytes of the files under `folder` now (files that vanish while it walks count as 0): what a bomb has
+    written so far."""
+    total = 0
+    for dirpath, _, files in os.walk(folder):
+        for f in files:
+            try:
+                total += os.stat(os.path.join(dirpath, f)).st_size
+            except FileNotFoundError:
+                pass
+    return total

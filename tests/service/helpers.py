@@ -7,7 +7,10 @@ import io
 import json
 import subprocess
 import sys
+import threading
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
 from functools import lru_cache
 from pathlib import Path
@@ -166,3 +169,27 @@ def mint_in_service(service: Service, purpose: str, job_id: str, *grants: tuple[
     out = subprocess.run([sys.executable, "-c", code, purpose, job_id, *args], env=service.env, cwd=REPO, check=True,
                          capture_output=True, text=True)  # fmt: skip
     return out.stdout.split()
+
+
+@contextmanager
+def other_tenant_served(service: Service, capture_id: str) -> Iterator[None]:
+    """Tenant B's GET of its capture `capture_id`, repeated in a thread while the block runs (tenant A's bad request
+    or the service's bad config): every answer must be 200."""
+    codes: list[int] = []
+    done = threading.Event()
+
+    def poll() -> None:
+        with service.client(KEY_B) as c:
+            while True:
+                codes.append(c.get(f"/v1/captures/{capture_id}").status_code)
+                if done.wait(0.05):
+                    return
+
+    t = threading.Thread(target=poll)
+    t.start()
+    try:
+        yield
+    finally:
+        done.set()
+        t.join(60)
+    assert codes and set(codes) == {200}, f"tenant B was not served meanwhile: {codes}"

@@ -10,17 +10,15 @@ from __future__ import annotations
 
 import json
 import socket
-import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 
-from .helpers import KEY_A, KEY_B, TINY, Service, capture_zip, sql, upload
+from .helpers import KEY_A, KEY_B, TINY, Service, capture_zip, other_tenant_served, sql, upload
 
 Case = Callable[[httpx.Client, dict[str, Any]], httpx.Response]
 
@@ -121,28 +119,6 @@ def job_rows(service: Service) -> int:
 
 def listing(root: Path) -> set[str]:
     return {p.relative_to(root).as_posix() for p in root.rglob("*") if "staging" not in p.parts}
-
-
-@contextmanager
-def other_tenant_served(service: Service, capture_id: str) -> Iterator[None]:
-    codes: list[int] = []
-    done = threading.Event()
-
-    def poll() -> None:
-        with service.client(KEY_B) as c:
-            while True:
-                codes.append(c.get(f"/v1/captures/{capture_id}").status_code)
-                if done.wait(0.05):
-                    return
-
-    t = threading.Thread(target=poll)
-    t.start()
-    try:
-        yield
-    finally:
-        done.set()
-        t.join(60)
-    assert codes and set(codes) == {200}, f"tenant B was not served meanwhile: {codes}"
 
 
 @pytest.fixture(scope="module")

@@ -15,19 +15,18 @@ import threading
 import time
 import zipfile
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
 import pytest
-from zip_bombs import bomb_zip
+from zip_bombs import bomb_zip, folder_bytes
 
 from neumatex_core.imageio import write_image
 from services.cluster import REPO, Proc, free_port, wait_for
 
-from .helpers import EXAMPLE, KEY_A, KEY_B, TINY, Service, capture_zip, sql, upload
+from .helpers import EXAMPLE, KEY_A, KEY_B, TINY, Service, capture_zip, other_tenant_served, sql, upload
 
 LIMIT = 8 * 1024**2  # the tests' max_upload_bytes (helpers.Service)
 FILES = sorted(p for p in EXAMPLE.rglob("*") if p.is_file() and p.relative_to(EXAMPLE).parts[0] not in
@@ -40,40 +39,6 @@ Case = Callable[[httpx.Client], httpx.Response]
 
 def listing(root: Path) -> set[str]:
     return {p.relative_to(root).as_posix() for p in root.rglob("*")} if root.is_dir() else set()
-
-
-def folder_bytes(folder: Path) -> int:
-    total = 0
-    for dirpath, _, files in os.walk(folder):
-        for f in files:
-            try:
-                total += os.stat(os.path.join(dirpath, f)).st_size
-            except FileNotFoundError:
-                pass
-    return total
-
-
-@contextmanager
-def other_tenant_served(service: Service, capture_id: str) -> Iterator[None]:
-    """Tenant B's GET of its capture, repeated in a thread while the block runs: every answer must be 200."""
-    codes: list[int] = []
-    done = threading.Event()
-
-    def poll() -> None:
-        with service.client(KEY_B) as c:
-            while True:
-                codes.append(c.get(f"/v1/captures/{capture_id}").status_code)
-                if done.wait(0.05):
-                    return
-
-    t = threading.Thread(target=poll)
-    t.start()
-    try:
-        yield
-    finally:
-        done.set()
-        t.join(60)
-    assert codes and set(codes) == {200}, f"tenant B was not served while A's bad request ran: {codes}"
 
 
 def form(files: list[tuple[bytes, bytes]], boundary: bytes = b"nmx-battery-boundary") -> tuple[bytes, dict[str, str]]:
