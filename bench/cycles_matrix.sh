@@ -10,6 +10,8 @@
 #
 #   NEUMATEX_SHARED=../shared bench/cycles_matrix.sh
 #   MESHES="teapot" PRESETS="coat sheen" THREADS=1 bench/cycles_matrix.sh     # a subset, one torch thread
+#   VARIANTS=pbr,<default>,<candidate> WORK=runs/bench-cycles-extract-rr16 THREADS=1 bench/cycles_matrix.sh
+#       # eval variants (neumatex_core/eval/variants.py) side by side, each capture's scores kept under WORK
 set -euo pipefail
 cd "$(dirname "$0")/.."
 meshes=${MESHES:-"teapot suzanne cow cheburashka"}
@@ -29,4 +31,5 @@ for mesh in $meshes; do
     captures+=("$out")
   done
 done
-.venv/bin/python bench/cycles_extract.py --threads "${THREADS:-2}" "${captures[@]}"
+.venv/bin/python bench/cycles_extract.py --threads "${THREADS:-2}" ${VARIANTS:+--variants "$VARIANTS"} \
+  ${WORK:+--work "$WORK"} "${captures[@]}"
