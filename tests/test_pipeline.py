@@ -421,28 +421,30 @@ def test_every_eval_table_is_described_and_valid():
     # The variants are defined on the extraction's variant base (the TTO preset's steps); the extraction's own neural
     # phase runs neural_steps_scale times as many
     extraction, base = ExtractConfig.preset("cpu").tto_config(), ExtractConfig.preset("cpu").variant_base()
-    assert base == replace(extraction, steps=TTOConfig.preset("cpu").steps) and extraction.steps == 800
+    assert base == replace(extraction, steps=TTOConfig.preset("cpu").steps) and extraction.steps == 900
     assert variant_config("ours", base) == variant_config("ours", TTOConfig.preset("cpu"))
     ours = variant_config("ours", base)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
     assert variant_config("pbr", base).steps == 400  # type: ignore[union-attr]
-    # the default's own variant (since late on 2026-12-03, design note 70) is the extraction's TTO; the four defaults
+    # the default's own variant (since 2026-12-04, design note 74) is the extraction's TTO; the five defaults
     # before it differ only in their settling's length, the one before those also in its settling's rate, the one
     # before that also in its settling steps' loss, the one before that also in the settling phase, and the one
     # before that also in the choice's length; the variants measured against those build on them
     from neumatex_core.eval.variants import DEFAULT_VARIANT
 
-    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10_s800" and DEFAULT_VARIANT in TABLES["default"]
+    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10_s900" and DEFAULT_VARIANT in TABLES["default"]
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
     assert variant_config(DEFAULT_VARIANT, base) == extraction
     tiny = ExtractConfig.preset("tiny")
     assert variant_config(DEFAULT_VARIANT, tiny.variant_base()) == tiny.tto_config()  # the same scale on every preset
     assert extraction.settle_photo_loss == "decorrelated_debiased" and extraction.settle_lr == 1.0
-    # 200 high-rate steps in each, then 600, 500, 400, 300 or 200 settling; the choice's candidates 100 steps each
-    assert (extraction.steps, extraction.settle_fraction, extraction.select_fraction) == (800, 3 / 4, 1 / 8)
+    # 200 high-rate steps in each, then 700, 600, 500, 400, 300 or 200 settling; the choice's candidates 100 steps each
+    assert (extraction.steps, extraction.settle_fraction, extraction.select_fraction) == (900, 7 / 9, 1 / 9)
     assert extraction.settle_start() == 200 and extraction.select_steps() == 100
+    s800 = variant_config("pbr_start_default_settle_decdb_slr10_s800", base)
+    assert s800 == replace(extraction, steps=800, settle_fraction=3 / 4, select_fraction=1 / 8)
     s700 = variant_config("pbr_start_default_settle_decdb_slr10_s700", base)
-    assert s700 == replace(extraction, steps=700, settle_fraction=5 / 7, select_fraction=1 / 7)
+    assert s700 == replace(s800, steps=700, settle_fraction=5 / 7, select_fraction=1 / 7)
     s600 = variant_config("pbr_start_default_settle_decdb_slr10_s600", base)
     assert s600 == replace(s700, steps=600, settle_fraction=2 / 3, select_fraction=1 / 6)
     s500 = variant_config("pbr_start_default_settle_decdb_slr10_s500", base)

@@ -152,8 +152,8 @@ class TTOConfig:
     # pixel (pixels x spp / settle_spp pixels), and the learning rate starts a second cosine from lr x settle_lr
     # down to lr x settle_lr x settle_lr_final. Measured (docs/design-notes.md, item 50): from the ground truth, half
     # the steps settling keep 34.6 of its 50.0 dB (33.4 without); from the PBR start, all 40 benchmark objects,
-    # PathTrace +0.44 +- 0.13 dB. The extraction presets set 3/4 and settle_lr 1.0 (pipeline.NEURAL_FROM_PBR; the
-    # full rate again: item 65; 3/4 of 2x the steps: item 70); 0 here, so a bare TTOConfig (the PBR baseline, the
+    # PathTrace +0.44 +- 0.13 dB. The extraction presets set 7/9 and settle_lr 1.0 (pipeline.NEURAL_FROM_PBR; the
+    # full rate again: item 65; 7/9 of 2.25x the steps: item 74); 0 here, so a bare TTOConfig (the PBR baseline, the
     # paper's variants) is the plain cosine schedule.
     settle_fraction: float = 0.0
     settle_spp: int = 32
