@@ -3,8 +3,9 @@ pieces of work share the CPU's torch threads (`side_by_side`)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import TypeVar
 
 import torch
@@ -31,14 +32,22 @@ def side_by_side(tasks: Sequence[Callable[[], T]], device: torch.device) -> list
     one on both instead of 2x (the demo's choice: 56 -> 50 s; docs/design-notes.md item 44). The tasks must share
     nothing they write. A task's numbers depend on the threads it runs on, as any torch computation's: the same
     settings on one machine give the same bits."""
-    threads = torch.get_num_threads()
     if not runs_side_by_side(len(tasks), device):
         return [task() for task in tasks]
-    torch.set_num_threads(threads // len(tasks))
-    try:
+    with torch_threads(torch.get_num_threads() // len(tasks)):
         with ThreadPoolExecutor(len(tasks), thread_name_prefix="side-by-side") as pool:
             futures = [pool.submit(task) for task in tasks]
             return [future.result() for future in futures]
+
+
+@contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """torch's intra-op thread count set to `count` inside the block and restored after it (also on an error): e.g.
+    one thread where a number must come out bit for bit the same whatever the caller's count."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
     finally:
         torch.set_num_threads(threads)
 

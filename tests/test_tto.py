@@ -566,6 +566,9 @@ def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(
     sel = kept.selection
     assert sel["uniform_kept"] == 1.0 and sel["validation_photos"] == 4.0
     assert math.isfinite(sel["validation_psnr_uniform"]) and math.isfinite(sel["validation_psnr_textured"])
+    # the evidence of light painted into the textured candidate's base colour is recorded (tto/baked_light.py)
+    assert all(math.isfinite(sel[k]) for k in ("light_slope", "light_correlation", "texture_spread"))
+    assert sel["texture_spread"] > 0 and -1.0 <= sel["light_correlation"] <= 1.0
     textured = replace(cfg, select_uniform=False)
     uniform = replace(textured, consistency_rho_value=UNIFORM_RHO_VALUE)
     plain_uniform = solve(uniform, *args)
@@ -581,6 +584,7 @@ def test_select_uniform_chooses_between_uniform_and_textured_on_held_out_photos(
     assert torch.equal(quick.params.tensor, plain_uniform.params.tensor)
     chose_textured = solve(replace(cfg, select_margin_db=-100.0), *args)
     assert chose_textured.selection["uniform_kept"] == 0.0
+    assert chose_textured.selection["light_slope"] == sel["light_slope"]  # the same candidates, the same evidence
     assert chose_textured.selection["validation_psnr_textured"] == pytest.approx(sel["validation_psnr_textured"],
                                                                                  abs=1e-6)  # fmt: skip
     plain_textured = solve(textured, *args)

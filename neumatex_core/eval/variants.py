@@ -304,6 +304,12 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # +0.17, sheen +0.05, metal +0.47, diffuse -0.86 +- 2.21 (two uniform/textured choice flips). The extraction's
     # default since 2026-12-04 (design notes 72-74)
     "pbr_start_default_settle_decdb_slr10_s900": EXTRACTION_DEFAULT,
+    # ... the default with its uniform/textured choice forced (select_margin_db +100: uniform kept always; -100:
+    # textured always), the candidates still run and scored, so each row records the choice's evidence (held-out
+    # scores, tto/baked_light.py's light slope) and the flipped branch's scores: with the default's own row, both
+    # branches on every object, bit for bit what the default gives where it chose the same (design note 75)
+    "pbr_start_default_settle_decdb_slr10_s900_uniform": {**DEFAULT_72, "select_margin_db": 100.0},
+    "pbr_start_default_settle_decdb_slr10_s900_textured": {**DEFAULT_72, "select_margin_db": -100.0},
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
     # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
     # the truth on object 0 PathTrace 36.62 / 36.14 against the default's 36.63 (0.3 instead: 35.89): not run from

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from neumatex_core.capture.tonemap import Tonemap
-from neumatex_core.device import runs_side_by_side, side_by_side
+from neumatex_core.device import runs_side_by_side, side_by_side, torch_threads
 from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
@@ -38,6 +38,7 @@ from neumatex_core.materials.pbr import PBRMaterial
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
+from neumatex_core.tto.baked_light import light_following
 from neumatex_core.tto.config import UNIFORM_RHO_VALUE, TTOConfig
 from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.loss import Anchor, photometric_loss
@@ -546,6 +547,13 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         selection = {f"validation_psnr_{choice.names[0]}": scores[0],
                      f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(keep),
                      "validation_photos": float(len(held_out))}  # fmt: skip
+        if switch == "select_uniform":  # evidence of light painted into the textured base colour (recorded only;
+            # one thread, so it is the same bits whether the candidates ran side by side or not)
+            (uniform, _), (textured, _) = runs
+            with torch_threads(1):
+                    selection.update(light_following(lambda q: textured.params.gbuffer(q, None),
+                                                 lambda q: uniform.params.gbuffer(q, None), textured.mesh or mesh,
+                                                 envmap, first.params.tensor.device, seed=config.seed))
     final_config, final_basis = candidates[chosen], basis
     if start is not None:
         selection = {**selection, **start.record}
