@@ -34,55 +34,54 @@ SCORES = ("psnr_pathtrace_clean", "psnr_relight_clean")
 EVIDENCE = ("light_slope", "light_correlation", "texture_spread")
 
 
-def branches(default: str) -> dict[str, dict[str, Any]]:
-    """object -> {"uniform": scores, "textured": scores, "kept": the default's branch, evidence...}: the latest row
-    of the default and of each forced variant per object, where both branches are known."""
-    latest: dict[tuple[str, str], dict[str, Any]] = {}
-    for row in own_rows():
-        if row["variant"] in (default, f"{default}_uniform", f"{default}_textured"):
-            latest[(row["variant"], row["object"])] = row
+Entry = tuple[dict[str, float], dict[str, float]]  # one run's scores (SCORES) and its choice's selection record
+
+
+def forced(default: str) -> tuple[str, str, str]:
+    """The default and its two forced variants (eval/variants.py: ..._uniform, ..._textured)."""
+    return default, f"{default}_uniform", f"{default}_textured"
+
+
+def paired(latest: dict[tuple[str, str], Entry], default: str) -> dict[str, dict[str, Any]]:
+    """name -> {"uniform": scores, "textured": scores, "kept": the default's branch, "margin", evidence...} from the
+    latest run per (variant, name), where the default's and its flipped branch's runs are both there; the evidence
+    is the forced run's record (the default's rows may predate it)."""
     out: dict[str, dict[str, Any]] = {}
-    for (variant, obj), row in latest.items():
-        if variant != default:
-            continue
-        kept = "uniform" if row["choice"]["choice_uniform_kept"] else "textured"
+    for (variant, name), (scores, selection) in latest.items():
+        kept = "uniform" if selection.get("uniform_kept") else "textured"
         flipped = "textured" if kept == "uniform" else "uniform"
-        other = latest.get((f"{default}_{flipped}", obj))
-        if other is None:
+        other = latest.get((f"{default}_{flipped}", name))
+        if variant != default or other is None:
             continue
-        choice = other["choice"]
-        out[obj] = {kept: row["scores"], flipped: other["scores"], "kept": kept,
-                    "margin": choice["choice_validation_psnr_textured"] - choice["choice_validation_psnr_uniform"],
-                    **{k: choice.get(f"choice_{k}", math.nan) for k in EVIDENCE}}
+        sel = other[1]
+        out[name] = {kept: scores, flipped: other[0], "kept": kept,
+                     "margin": sel["validation_psnr_textured"] - sel["validation_psnr_uniform"],
+                     **{k: sel.get(k, math.nan) for k in EVIDENCE}}
     return out
+
+
+def branches(default: str) -> dict[str, dict[str, Any]]:
+    """object -> `paired`'s record from bench/results/variants_clean.jsonl (the latest row per object and variant)."""
+    latest: dict[tuple[str, str], Entry] = {}
+    for row in own_rows():
+        if row["variant"] in forced(default):
+            selection = {k.removeprefix("choice_"): v for k, v in row.get("choice", {}).items()}
+            latest[(row["variant"], row["object"])] = (row["scores"], selection)
+    return paired(latest, default)
 
 
 def cycles_branches(default: str) -> dict[str, dict[str, Any]]:
-    """capture -> the same record as `branches` from bench/results/cycles_extract.jsonl (the latest clean scores per
-    capture and variant; scores psnr_pathtrace_clean / psnr_relight_clean hold the held-out photos' / relit)."""
+    """capture -> `paired`'s record from bench/results/cycles_extract.jsonl (the latest clean scores per capture and
+    variant; its SCORES hold the held-out photos' and the relit PSNR)."""
     path = RESULTS_DIR / "cycles_extract.jsonl"
-    latest: dict[tuple[str, str], dict[str, Any]] = {}
+    latest: dict[tuple[str, str], Entry] = {}
     for line in path.read_text().splitlines() if path.is_file() else []:
         for row in json.loads(line).get("rows", []):
-            for variant in (default, f"{default}_uniform", f"{default}_textured"):
-                if "relit_clean_db" in row.get(variant, {}):
-                    latest[(variant, row["capture"])] = row[variant]
-    out: dict[str, dict[str, Any]] = {}
-    for (variant, capture), entry in latest.items():
-        if variant != default:
-            continue
-        kept = "uniform" if entry["selection"]["uniform_kept"] else "textured"
-        flipped = "textured" if kept == "uniform" else "uniform"
-        other = latest.get((f"{default}_{flipped}", capture))
-        if other is None:
-            continue
-        sel = other["selection"]
-        scores = {k: {SCORES[0]: e["photos_clean_db"], SCORES[1]: e["relit_clean_db"]}
-                  for k, e in ((kept, entry), (flipped, other))}
-        out[Path(capture).name] = {**scores, "kept": kept,
-                                   "margin": sel["validation_psnr_textured"] - sel["validation_psnr_uniform"],
-                                   **{k: sel.get(k, math.nan) for k in EVIDENCE}}
-    return out
+            for variant in forced(default):
+                if "relit_clean_db" in (e := row.get(variant, {})):
+                    scores = {SCORES[0]: e["photos_clean_db"], SCORES[1]: e["relit_clean_db"]}
+                    latest[(variant, Path(row["capture"]).name)] = (scores, e.get("selection", {}))
+    return paired(latest, default)
 
 
 def rule_scores(objects: dict[str, dict[str, Any]], rule: Callable[[dict[str, Any]], bool]) -> dict[str, np.ndarray]:
