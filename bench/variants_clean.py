@@ -28,7 +28,9 @@ again beside a variant on one machine (results move between machines: docs/desig
 `--to-eval OUT` writes each of --variants' rows (the latest per object) as results of the evaluation in OUT
 (`OUT/results/<object>/<variant>.json`, with a "source" naming this file, the row's time and commit), so that
 `neumatex eval --out OUT --report-only` pages them, e.g. the default's table once its variant has rows on every
-object (docs/design-notes.md items 51 and 59):
+object (docs/design-notes.md items 51 and 59). With `--fill-from B,C`, where a variant has no row, the row of B or C
+that differs from it only in the uniform/textured choice's margin and makes the same choice there stands in
+(`same_uniform_choice`, item 75):
 
     .venv/bin/python bench/variants_clean.py --to-eval bench/results/eval-clean \\
         --variants pbr_start_default_settle_decdb
@@ -46,6 +48,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from pathlib import Path
@@ -234,18 +237,45 @@ def summarise(variants: list[str], against: list[str], fill_from: list[str] | No
     return 0
 
 
-def to_eval(variants: list[str], out: Path) -> int:
+def same_uniform_choice(variant: str, other: str, choice: dict[str, float]) -> bool:
+    """Whether `other`'s row, whose choice record is `choice`, stands in for `variant`'s: their configs differ in
+    `select_margin_db` alone and both margins make the same uniform/textured choice from the recorded held-out
+    scores. The choice's candidates do not depend on the margin (their held-out scores agree bit for bit between
+    the default and its forced variants on all 40 objects, docs/design-notes.md item 75), and what follows depends
+    on the choice alone, so such a row is the variant's result."""
+    base = ExtractConfig.preset("cpu").tto
+    a, b = variant_config(variant, base), variant_config(other, base)
+    if a is None or b is None or replace(a, select_margin_db=0.0) != replace(b, select_margin_db=0.0):
+        return False
+    if "choice_validation_psnr_textured" not in choice:
+        return False
+    gain = choice["choice_validation_psnr_textured"] - choice["choice_validation_psnr_uniform"]
+    return (gain > a.select_margin_db) == (gain > b.select_margin_db)
+
+
+def to_eval(variants: list[str], out: Path, fill_from: Sequence[str] = ()) -> int:
     """Write the latest row per (object, variant) of this file as the evaluation's result in `out` (the fields
-    `evaluate_variant` stores: scores, choices, object, variant) with its "source"; print how many per variant."""
+    `evaluate_variant` stores: scores, choices, object, variant) with its "source"; print how many per variant.
+    Where a variant has no row, the latest row of the first of `fill_from` that makes the same uniform/textured
+    choice there (`same_uniform_choice`) stands in, its source saying so."""
     latest: dict[tuple[str, str], dict[str, Any]] = {}
     for row in own_rows():
-        if row["variant"] in variants:
+        if row["variant"] in (*variants, *fill_from):
             latest[(row["variant"], row["object"])] = row
     for variant in variants:
-        rows = [r for (v, _), r in sorted(latest.items()) if v == variant]
+        objects = sorted({o for (v, o) in latest if v in (variant, *fill_from)})
+        rows: list[dict[str, Any]] = []
+        for o in objects:
+            row = latest.get((variant, o)) or next(
+                (latest[(f, o)] for f in fill_from
+                 if (f, o) in latest and same_uniform_choice(variant, f, latest[(f, o)].get("choice", {}))), None)
+            if row is not None:
+                rows.append(row)
         for row in rows:
+            stand_in = "" if row["variant"] == variant else f", {row['variant']}'s row: the same choice"
             result = {**row["scores"], **row.get("choice", {}), "object": row["object"], "variant": variant,
-                      "source": f"bench/results/variants_clean.jsonl {row['timestamp']} (commit {row['commit'][:7]})"}
+                      "source": f"bench/results/variants_clean.jsonl {row['timestamp']} (commit {row['commit'][:7]}"
+                                f"{stand_in})"}
             path = result_path(out, row["object"], variant)
             path.parent.mkdir(parents=True, exist_ok=True)
             write_json_atomic(path, result)
@@ -266,7 +296,8 @@ def main() -> int:
                         "docs/design-notes.md items 44-45); with --summarise, summarise only those rows")
     parser.add_argument("--summarise", action="store_true", help="print the paired table so far and stop")
     parser.add_argument("--fill-from", default="", help="with --summarise: comma-separated variants whose rows stand "
-                        "in where they choose the same basis (see above)")
+                        "in where they choose the same basis; with --to-eval: where they make the same uniform/"
+                        "textured choice (see above)")
     parser.add_argument("--by-family", default="", metavar="BASELINE", help="with --summarise: also each variant - "
                         "BASELINE per material family of the objects (their meta.json), and on how many it is ahead")
     parser.add_argument("--per-object", default="", metavar="BASELINE", help="with --summarise: also each variant - "
@@ -276,7 +307,7 @@ def main() -> int:
     args = parser.parse_args()
     variants, against = args.variants.split(","), args.against.split(",")
     if args.to_eval:
-        return to_eval(variants, Path(args.to_eval))
+        return to_eval(variants, Path(args.to_eval), [v for v in args.fill_from.split(",") if v])
     if args.summarise:
         return summarise(variants, against, [v for v in args.fill_from.split(",") if v],
                          (Path(args.data), args.by_family) if args.by_family else None, args.since,

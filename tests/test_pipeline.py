@@ -426,13 +426,14 @@ def test_every_eval_table_is_described_and_valid():
     ours = variant_config("ours", base)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
     assert variant_config("pbr", base).steps == 400  # type: ignore[union-attr]
-    # the default's own variant (since 2026-12-04, design note 74) is the extraction's TTO; the five defaults
-    # before it differ only in their settling's length, the one before those also in its settling's rate, the one
-    # before that also in its settling steps' loss, the one before that also in the settling phase, and the one
-    # before that also in the choice's length; the variants measured against those build on them
+    # the default's own variant (since midday on 2026-12-04, design note 75) is the extraction's TTO; the one before
+    # it differs only in its choice's margin, the five before that only in their settling's length, the one before
+    # those also in its settling's rate, the one before that also in its settling steps' loss, the one before that
+    # also in the settling phase, and the one before that also in the choice's length; the variants measured against
+    # those build on them
     from neumatex_core.eval.variants import DEFAULT_VARIANT
 
-    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10_s900" and DEFAULT_VARIANT in TABLES["default"]
+    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10_s900_m0" and DEFAULT_VARIANT in TABLES["default"]
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
     assert variant_config(DEFAULT_VARIANT, base) == extraction
     tiny = ExtractConfig.preset("tiny")
@@ -441,8 +442,14 @@ def test_every_eval_table_is_described_and_valid():
     # 200 high-rate steps in each, then 700, 600, 500, 400, 300 or 200 settling; the choice's candidates 100 steps each
     assert (extraction.steps, extraction.settle_fraction, extraction.select_fraction) == (900, 7 / 9, 1 / 9)
     assert extraction.settle_start() == 200 and extraction.select_steps() == 100
+    assert extraction.select_margin_db == 0.0  # textured kept whenever it scores better on the held-out photos
+    s900 = variant_config("pbr_start_default_settle_decdb_slr10_s900", base)
+    assert s900 == replace(extraction, select_margin_db=0.25)
+    for forced, margin in (("uniform", 100.0), ("textured", -100.0)):  # the choice forced, for both branches
+        assert variant_config(f"pbr_start_default_settle_decdb_slr10_s900_{forced}", base) == replace(
+            s900, select_margin_db=margin)
     s800 = variant_config("pbr_start_default_settle_decdb_slr10_s800", base)
-    assert s800 == replace(extraction, steps=800, settle_fraction=3 / 4, select_fraction=1 / 8)
+    assert s800 == replace(s900, steps=800, settle_fraction=3 / 4, select_fraction=1 / 8)
     s700 = variant_config("pbr_start_default_settle_decdb_slr10_s700", base)
     assert s700 == replace(s800, steps=700, settle_fraction=5 / 7, select_fraction=1 / 7)
     s600 = variant_config("pbr_start_default_settle_decdb_slr10_s600", base)
