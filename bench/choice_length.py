@@ -10,6 +10,7 @@ every object (item 75), so `bench/choice_rule.py --length FRACTION` scores the r
 candidates say so" without running the TTO that follows.
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/choice_length.py --fraction 0.2222 --objects 0,2,4
+    NEUMATEX_SHARED=../shared .venv/bin/python bench/choice_length.py --fraction 0.2222 --captures runs/cycles/cow-*
 """
 
 from __future__ import annotations
@@ -23,53 +24,47 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import write_result  # noqa: E402
+from common import prepared_capture, write_result  # noqa: E402
 
-from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.eval.references import harness_envmap  # noqa: E402
 from neumatex_core.eval.variants import DEFAULT_VARIANT, variant_config  # noqa: E402
 from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
-from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage  # noqa: E402
-from neumatex_core.tto import PhotoSet, solve  # noqa: E402
+from neumatex_core.tto import solve  # noqa: E402
 
 FINAL_PHASE = 2.0  # the progress rows' phase of the TTO with the chosen config (tto/pbr_start.py)
 
 
-def choice_of(object_dir: Path, work: Path, fraction: float) -> dict[str, Any]:
-    """The default's choice on one object with candidates of `fraction` of the neural steps: its selection record."""
-    config = ExtractConfig.preset("cpu")
-    for stage in ("validate", "prepare_views", "lmrm"):
-        run_stage(stage, object_dir, work, config)
-    pred, _ = load_prediction(work)
+def choice_of(capture: Path, work: Path, fraction: float) -> dict[str, Any]:
+    """The default's choice on one capture with candidates of `fraction` of the neural steps: its selection record."""
+    config, pred, cap, mesh, photos = prepared_capture(capture, work)
     tto = variant_config(DEFAULT_VARIANT, config.variant_base())
     assert tto is not None and tto.select_uniform
     tto = replace(tto, select_fraction=fraction)
-    cap = load_capture(object_dir)
-    mesh = cap.load_mesh()
     final = [False]
 
     def progress(_s: int, _n: int, row: dict[str, float]) -> None:
         final[0] = final[0] or row.get("phase") == FINAL_PHASE
 
-    result = solve(tto, mesh, harness_envmap(cap), PhotoSet.of_capture(cap, mesh), cap.tonemap, pred,
-                   load_basis(basis_id=tto.basis), progress=progress, should_stop=lambda: final[0])
+    result = solve(tto, mesh, harness_envmap(cap), photos, cap.tonemap, pred, load_basis(basis_id=tto.basis),
+                   progress=progress, should_stop=lambda: final[0])
     return dict(result.selection)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--fraction", type=float, required=True, help="the candidates' share of the neural steps")
-    parser.add_argument("--objects", required=True, help="comma-separated benchmark indices, e.g. 0,2,4")
+    parser.add_argument("--objects", default="", help="comma-separated benchmark indices, e.g. 0,2,4")
+    parser.add_argument("--captures", nargs="*", default=[], type=Path, help="capture folders, e.g. runs/cycles/*")
     parser.add_argument("--data", default="data/benchmark-test")
     parser.add_argument("--work", default="runs/choice-length")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    for index in (int(i) for i in args.objects.split(",")):
-        name = f"test-{index:06d}"
-        selection = choice_of(Path(args.data) / name, Path(args.work) / name, args.fraction)
-        write_result("choice_length", {"object": name, "variant": DEFAULT_VARIANT, "fraction": args.fraction,
-                                       "selection": selection})
-        print(f"{name}: {selection}", flush=True)
+    folders = [Path(args.data) / f"test-{int(i):06d}" for i in args.objects.split(",") if i] + args.captures
+    for folder in folders:
+        selection = choice_of(folder, Path(args.work) / folder.name, args.fraction)
+        write_result("choice_length", {"object": folder.name, "capture": str(folder), "variant": DEFAULT_VARIANT,
+                                       "fraction": args.fraction, "selection": selection})
+        print(f"{folder.name}: {selection}", flush=True)
     return 0
 
 

@@ -84,6 +84,19 @@ def cycles_branches(default: str) -> dict[str, dict[str, Any]]:
     return paired(latest, default)
 
 
+def longer_margins(fraction: float) -> dict[str, float]:
+    """object -> textured - uniform held-out PSNR of the choice with candidates `fraction` of the neural steps long
+    (bench/results/choice_length.jsonl, the latest record per object)."""
+    path = RESULTS_DIR / "choice_length.jsonl"
+    out: dict[str, float] = {}
+    for line in path.read_text().splitlines() if path.is_file() else []:
+        row = json.loads(line)
+        if abs(row["fraction"] - fraction) < 1e-6:
+            sel = row["selection"]
+            out[row["object"]] = sel["validation_psnr_textured"] - sel["validation_psnr_uniform"]
+    return out
+
+
 def rule_scores(objects: dict[str, dict[str, Any]], rule: Callable[[dict[str, Any]], bool]) -> dict[str, np.ndarray]:
     """Per score, [objects] what the rule (True: textured) gives."""
     return {s: np.array([o["textured" if rule(o) else "uniform"][s] for o in objects.values()]) for s in SCORES}
@@ -92,13 +105,21 @@ def rule_scores(objects: dict[str, dict[str, Any]], rule: Callable[[dict[str, An
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--default", default="pbr_start_default_settle_decdb_slr10_s900")
+    parser.add_argument("--length", type=float, default=0.0, metavar="FRACTION", help="also the rules on the held-out "
+                        "margin of candidates this share of the neural steps long (bench/choice_length.py's records)")
     args = parser.parse_args()
     objects = dict(sorted(branches(args.default).items()))
+    captures = dict(sorted(cycles_branches(args.default).items()))
+    if args.length:
+        longer = longer_margins(args.length)
+        for name, o in (*objects.items(), *captures.items()):
+            if name in longer:
+                o["margin_long"] = longer[name]
+        print(f"held-out margins of candidates {args.length:.4f} of the neural steps long on {len(longer)} objects")
     if not objects:
         print("no object has both branches yet (tools/choice_flips.sh)")
         return 1
     summary = report(objects, f"benchmark objects with both branches of {args.default}'s choice")
-    captures = dict(sorted(cycles_branches(args.default).items()))
     cycles = report(captures, "Cycles captures with both branches (PathTrace: held-out photos)") if captures else {}
     write_result("choice_rule", {"default": args.default, "objects": len(objects), "rules": summary,
                                  "per_object": objects, "captures": len(captures), "cycles_rules": cycles,
@@ -131,6 +152,12 @@ def report(objects: dict[str, dict[str, Any]], label: str) -> dict[str, Any]:
         "oracle Relight": lambda o: o["textured"][SCORES[1]] > o["uniform"][SCORES[1]],
         "margin > 0 (select_margin_db 0)": lambda o: o["margin"] > 0,
     }
+    if all("margin_long" in o for o in objects.values()):  # --length
+        rules["longer candidates: margin > 0"] = lambda o: o["margin_long"] > 0
+        rules["longer candidates: margin > 0.25"] = lambda o: o["margin_long"] > 0.25
+        x, d = (np.array([o["margin_long"] for o in objects.values()]), diff[SCORES[0]])
+        print(f"longer candidates' margin against textured - uniform: pathtrace r = {np.corrcoef(x, d)[0, 1]:+.2f}, "
+              f"relight r = {np.corrcoef(x, diff[SCORES[1]])[0, 1]:+.2f}")
     for slope in (0.0, 0.05, 0.1, 0.2):
         rules[f"margin > 0.25 and light slope < {slope}"] = \
             lambda o, s=slope: o["margin"] > 0.25 and o["light_slope"] < s  # fmt: skip
