@@ -149,8 +149,8 @@ class ExtractConfig:
     when views are synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview
     renders; eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); variation: how the
     object's material varies over its surface, which sets the neural phase's consistency term (`VARIATIONS`):
-    "choose" (the default: both tried, held-out photos decide; about twice the TTO's time; "textured" without the
-    PBR start), "textured" (several materials or textures) or "uniform" (one material all over; needs init "pbr");
+    "choose" (the default: both tried, held-out photos decide; 1300 TTO steps, not 1100, on cpu; "textured" without
+    the PBR start), "textured" (several materials or textures) or "uniform" (one material all over; needs init "pbr");
     lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or
     "cuda"; seed: every random draw; name: asset name (default: the capture folder's)."""
 
