@@ -6,7 +6,7 @@ import torch
 
 from neumatex_core.geometry.mesh import load_mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
-from neumatex_core.tto.baked_light import light_following, shading, surface_samples
+from neumatex_core.tto.baked_light import light_following, shading
 from tests.conftest import ENVMAPS, MESHES
 
 N = 2048
@@ -26,7 +26,7 @@ def _gbuffer(rho: torch.Tensor):
 
 def test_shading_is_shadowed_and_deterministic():
     mesh, env = _scene()
-    points, normals = surface_samples(mesh, N, seed=3)
+    points, normals = mesh.sample_surface_normals(N, seed=3)
     assert torch.allclose(normals.norm(dim=1), torch.ones(N), atol=1e-5)
     s = shading(mesh, env, points, normals, seed=3)
     assert torch.equal(s, shading(mesh, env, points, normals, seed=3))
@@ -38,7 +38,7 @@ def test_shading_is_shadowed_and_deterministic():
 
 def test_light_painted_in_has_slope_one_and_a_pattern_slope_zero():
     mesh, env = _scene()
-    points, normals = surface_samples(mesh, N, seed=0)
+    points, normals = mesh.sample_surface_normals(N, seed=0)
     s = shading(mesh, env, points, normals, seed=0)
     uniform = torch.full((N,), 0.5)
     # the capture's light painted into the base colour: rho proportional to the shading (the same estimate)

@@ -84,20 +84,37 @@ class Mesh:
         normals = np.where(length > 0, acc / np.maximum(length, 1e-30), [0.0, 1.0, 0.0])
         return Mesh(self.vertices, self.faces, normals.astype(np.float32), self.uvs)
 
-    def sample_surface(self, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """n points [n, 3] float32 uniformly distributed over the area, and their uvs [n, 2] (None without
-        uvs); deterministic in seed."""
+    def _area_samples(self, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """n points uniform over the area: their triangles [n], barycentrics [n, 3] and positions [n, 3] (float64);
+        deterministic in seed."""
         rng = np.random.default_rng(seed)
         v = self.vertices[self.faces].astype(np.float64)
         area = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
         tri = rng.choice(len(area), size=n, p=area / area.sum())
         r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
         b = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)  # uniform barycentrics (sqrt warp)
-        points = torch.from_numpy((b[:, :, None] * v[tri]).sum(1).astype(np.float32))
+        return tri, b, (b[:, :, None] * v[tri]).sum(1)
+
+    def sample_surface(self, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """n points [n, 3] float32 uniformly distributed over the area, and their uvs [n, 2] (None without
+        uvs); deterministic in seed."""
+        tri, b, positions = self._area_samples(n, seed)
+        points = torch.from_numpy(positions.astype(np.float32))
         if self.uvs is None:
             return points, None
         uv = self.uvs[self.faces[tri]].astype(np.float64)
         return points, torch.from_numpy((b[:, :, None] * uv).sum(1).astype(np.float32))
+
+    def sample_surface_normals(self, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """The points of `sample_surface(n, seed)` [n, 3] and their unit shading normals [n, 3] (interpolated
+        vertex normals, else the face's), float32."""
+        tri, b, positions = self._area_samples(n, seed)
+        if self.vertex_normals is not None:
+            normals = (b[:, :, None] * self.vertex_normals[self.faces[tri]].astype(np.float64)).sum(1)
+        else:
+            normals = self.face_normals()[tri].astype(np.float64)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
+        return torch.from_numpy(positions.astype(np.float32)), torch.from_numpy(normals.astype(np.float32))
 
     def torch(self, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
         """Tensors for shading: vertices, faces, face normals, (optional) vertex normals and uvs."""

@@ -15,34 +15,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import numpy as np
 import torch
 
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.geometry.raycast import RayCaster
 from neumatex_core.lighting.envmap import EnvironmentMap
+from neumatex_core.materials.base import luminance
 
-LUMINANCE = (0.2126, 0.7152, 0.0722)  # linear Rec. 709 weights
 SHADOW_EPS = 1e-4  # ray origin offset along the normal, in scene units (the meshes are about unit size)
-
-
-def surface_samples(mesh: Mesh, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """n points [n, 3] uniformly distributed over the area and their unit shading normals [n, 3] (interpolated
-    vertex normals, else the face's), float32; deterministic in seed."""
-    rng = np.random.default_rng(seed)
-    v = mesh.vertices[mesh.faces].astype(np.float64)  # [F, 3, 3]
-    cross = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    area = np.linalg.norm(cross, axis=1)
-    tri = rng.choice(len(area), size=n, p=area / area.sum())
-    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
-    b = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)  # uniform barycentrics
-    points = (b[:, :, None] * v[tri]).sum(1)
-    if mesh.vertex_normals is not None:
-        normals = (b[:, :, None] * mesh.vertex_normals[mesh.faces[tri]].astype(np.float64)).sum(1)
-    else:
-        normals = cross[tri]
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True).clip(1e-12)
-    return torch.from_numpy(points.astype(np.float32)), torch.from_numpy(normals.astype(np.float32))
 
 
 def shading(mesh: Mesh, envmap: EnvironmentMap, points: torch.Tensor, normals: torch.Tensor, samples: int = 64,
@@ -62,7 +42,7 @@ def shading(mesh: Mesh, envmap: EnvironmentMap, points: torch.Tensor, normals: t
     blocked = torch.zeros_like(above)
     if bool(above.any()):
         blocked[above] = RayCaster(mesh).occluded(p[above] + SHADOW_EPS * nrm[above], directions[above])
-    lum = radiance @ torch.tensor(LUMINANCE)
+    lum = luminance(radiance)
     contrib = torch.where(above & ~blocked, lum * cos.clamp_min(0) / (torch.pi * pdf.clamp_min(1e-12)),
                           torch.zeros_like(lum))
     return contrib.view(n, samples).mean(1)
@@ -74,17 +54,17 @@ def light_following(textured: Callable[[torch.Tensor], torch.Tensor], uniform: C
     """How the textured candidate's base colour differs from the uniform one's along the capture's light.
 
     textured / uniform: G-buffers [N, 9] (rho_d first) of the two candidates at points [N, 3] on `device`. With y
-    the log luminance ratio of their base colours and x the log shading (`shading`) at `points` surface points, over the
-    points the map lights at all: `light_slope` cov(x, y) / var(x) (1: the textured base colour's extra variation
-    scales with the light; 0: none of it does), `light_correlation` corr(x, y), and `texture_spread` std(y), how far
-    the textured base colour departs from the uniform one at all (log units)."""
-    p, nrm = surface_samples(mesh, points, seed)
+    the log luminance ratio of their base colours and x the log shading (`shading`) at `points` surface points
+    (`Mesh.sample_surface_normals`), over the points the map lights at all: `light_slope` cov(x, y) / var(x) (1:
+    the textured base colour's extra variation scales with the light; 0: none of it does), `light_correlation`
+    corr(x, y), and `texture_spread` std(y), how far the textured base colour departs from the uniform one at all
+    (log units)."""
+    p, nrm = mesh.sample_surface_normals(points, seed)
     s = shading(mesh, envmap, p, nrm, seed=seed)
     device_points = p.to(device)
     with torch.no_grad():
-        lum = torch.tensor(LUMINANCE, device=device)
-        y = (torch.log(textured(device_points)[:, :3] @ lum + 1e-3)
-             - torch.log(uniform(device_points)[:, :3] @ lum + 1e-3)).double().cpu()
+        y = (torch.log(luminance(textured(device_points)[:, :3]) + 1e-3)
+             - torch.log(luminance(uniform(device_points)[:, :3]) + 1e-3)).double().cpu()
     lit = s > 1e-4 * float(s.max().clamp_min(1e-12))
     x = torch.log(s[lit].double())
     y = y[lit]

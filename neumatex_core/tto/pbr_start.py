@@ -551,7 +551,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
             # one thread, so it is the same bits whether the candidates ran side by side or not)
             (uniform, _), (textured, _) = runs
             with torch_threads(1):
-                    selection.update(light_following(lambda q: textured.params.gbuffer(q, None),
+                selection.update(light_following(lambda q: textured.params.gbuffer(q, None),
                                                  lambda q: uniform.params.gbuffer(q, None), textured.mesh or mesh,
                                                  envmap, first.params.tensor.device, seed=config.seed))
     final_config, final_basis = candidates[chosen], basis
