@@ -337,6 +337,25 @@ def test_a_larger_latent_starts_from_a_trained_basis(tmp_path: Path) -> None:
     assert trained.decoder[0].weight[:, 6:8].abs().max() > 0  # the zero columns learned something
 
 
+def test_a_wider_auxiliary_network_starts_afresh_beside_a_trained_basis(tmp_path: Path) -> None:
+    """`aux_width` sizes the T/R network; with `--init` from a basis of another width the encoder, decoder and sampler
+    start from that basis and the auxiliary network from fresh weights (docs/design-notes.md item 77); the width is
+    recorded (in the architecture and, when not the default, in the schedule)."""
+    from safetensors.torch import load_file
+
+    from neumatex_core.materials.basis_training import _schedule
+
+    trained = load_file(str(DEFAULT_WEIGHTS))
+    cfg = TrainBasisConfig(out=str(tmp_path / "w"), aux_width=96, init=str(DEFAULT_WEIGHTS),  # type: ignore[arg-type]
+                           **{**TINY, "steps_bsdf": 0, "steps_aux": 2, "steps_sampler": 0})
+    basis, metrics = train_basis(cfg, torch.device("cpu"))
+    state = basis.state_dict()
+    assert basis.arch.aux_hidden == [96, 96, 96] and state["aux.0.weight"].shape == (96, 9)
+    assert all(torch.equal(state[k], trained[k]) for k in trained if not k.startswith("aux."))  # no bsdf step ran
+    assert metrics["config"]["aux_width"] == 96  # type: ignore[index]
+    assert "aux_width" not in _schedule(TrainBasisConfig(**TINY))  # type: ignore[arg-type]  # earlier records unchanged
+
+
 def test_neural_sphere_matches_analytic(basis, shared_data: Path) -> None:  # type: ignore[no-untyped-def]
     """Plastic and metal spheres under studio.exr: the neural render matches the analytic one (common random
     numbers, so the difference is the BSDF error). Thresholds sit ~1.5 dB under what the shipped basis gives on

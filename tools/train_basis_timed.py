@@ -26,18 +26,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from neumatex_core.materials.basis_training import (  # noqa: E402
     STAGES,
     TrainBasisConfig,
+    architecture,
     stage_parameters,
     train_basis,
     training_step,
 )
-from neumatex_core.materials.neural_basis import BasisArchitecture, NeuralBasis  # noqa: E402
+from neumatex_core.materials.neural_basis import NeuralBasis  # noqa: E402
 
 SHARE = {"bsdf": 0.80, "aux": 0.05, "sampler": 0.15}  # of the training seconds
 
 
 def seconds_per_step(cfg: TrainBasisConfig, stage: str, device: torch.device, probe_s: float) -> float:
     """Mean wall seconds of one training step of `stage` (after 3 warm-up steps), timed for about probe_s."""
-    basis = NeuralBasis(BasisArchitecture(latent_dim=cfg.latent_dim)).to(device)
+    basis = NeuralBasis(architecture(cfg)).to(device)
     opt = torch.optim.Adam(stage_parameters(basis, stage, cfg.aux_weight), lr=cfg.lr)
     n, t0 = 0, 0.0
     while True:
@@ -70,6 +71,9 @@ def main() -> int:
     ap.add_argument("--uniform-share", type=float, default=0.25)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--latent-dim", type=int, default=6)
+    ap.add_argument("--aux-width", type=int, default=64)
+    ap.add_argument("--aux-share", type=float, default=SHARE["aux"], help="share of the training seconds for the "
+                    "auxiliary network alone (the bsdf stage gives up what it takes beyond the default)")
     ap.add_argument("--version", default="v3")
     args = ap.parse_args()
     start = time.perf_counter()
@@ -80,10 +84,12 @@ def main() -> int:
                            render_weight=args.render_weight, render_group=args.render_group,
                            render_base=args.render_base, mirror_share=args.mirror_share,
                            uniform_share=args.uniform_share, init=args.init, version=args.version,
-                           latent_dim=args.latent_dim, checkpoint_every=2000, device=str(device))  # fmt: skip
+                           latent_dim=args.latent_dim, aux_width=args.aux_width, checkpoint_every=2000,
+                           device=str(device))  # fmt: skip
     per_step = {s: seconds_per_step(cfg, s, device, args.probe_s if s == "bsdf" else args.probe_s / 2) for s in STAGES}
     train_s = (args.budget_s - (time.perf_counter() - start)) * 0.9 - 15  # margin: held-out metrics, saving
-    steps = {s: max(100, int(train_s * SHARE[s] / per_step[s])) for s in STAGES}
+    share = {**SHARE, "aux": args.aux_share, "bsdf": SHARE["bsdf"] + SHARE["aux"] - args.aux_share}
+    steps = {s: max(100, int(train_s * share[s] / per_step[s])) for s in STAGES}
     cfg.steps_bsdf, cfg.steps_aux, cfg.steps_sampler = steps["bsdf"], steps["aux"], steps["sampler"]
     print(f"{args.name}: {device}, s/step {per_step}, steps {steps}", flush=True)
 

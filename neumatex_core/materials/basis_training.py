@@ -77,6 +77,8 @@ class TrainBasisConfig:
                        "is widened: `grow_latent`)")
     latent_dim: int = option(LATENT_DIM, "latent size (the paper's 6; other sizes are for experiments: the rest of "
                              "the pipeline is built for 6)")
+    aux_width: int = option(64, "width of the auxiliary (T, R) network's three hidden layers; an --init basis of "
+                            "another width gets a fresh auxiliary network (docs/design-notes.md item 77)")
     install: bool = option(False, "also copy the trained weights into the package (neumatex_core/materials/data)")
     device: str = option("auto", "torch device: auto, cpu or cuda")
 
@@ -328,12 +330,18 @@ def train_basis(
     out.mkdir(parents=True, exist_ok=True)
     ckpt_path = out / "checkpoint.pt"
     torch.manual_seed(cfg.seed)
-    basis = NeuralBasis(BasisArchitecture(latent_dim=cfg.latent_dim)).to(device)
+    basis = NeuralBasis(architecture(cfg)).to(device)
     if cfg.init:
         from safetensors.torch import load_file
 
-        # same layer widths as the architecture; a smaller latent is widened (design note 31)
-        basis.load_state_dict(grow_latent(load_file(cfg.init), basis.state_dict()))
+        # same layer widths as the architecture; a smaller latent is widened (design note 31); an auxiliary
+        # network of another width starts afresh (design note 77)
+        fresh = basis.state_dict()
+        state = load_file(cfg.init)
+        if state["aux.0.weight"].shape[0] != fresh["aux.0.weight"].shape[0]:
+            state = {k: v for k, v in state.items() if not k.startswith("aux.")}
+        grown = grow_latent(state, fresh)
+        basis.load_state_dict({**{k: v for k, v in fresh.items() if k.startswith("aux.")}, **grown})
     history: dict[str, list[float]] = {s: [] for s in STAGES}
     seconds: dict[str, float] = {s: 0.0 for s in STAGES}
     start_stage, start_step, opt_state = 0, 0, None
@@ -378,6 +386,11 @@ def train_basis(
     return basis, metrics
 
 
+def architecture(cfg: TrainBasisConfig) -> BasisArchitecture:
+    """The network sizes `cfg` asks for."""
+    return BasisArchitecture(latent_dim=cfg.latent_dim, aux_hidden=[cfg.aux_width] * 3)
+
+
 def _cosine_schedule(total: int) -> Callable[[int], float]:
     """Learning-rate factor: cosine decay from 1 to 0.01 over `total` steps."""
     return lambda k: 0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * min(k / max(total, 1), 1)))
@@ -390,6 +403,6 @@ def _schedule(cfg: TrainBasisConfig) -> dict[str, object]:
     v1 = TrainBasisConfig()
     # options added after v1 enter the schedule only when set, so v1's record (and checkpoints) keep their meaning
     later = ("uniform_share", "aux_weight", "chroma_weight", "init", "latent_dim", "render_weight", "render_group",
-             "render_base", "mirror_share")
+             "render_base", "mirror_share", "aux_width")
     keys += [k for k in later if d[k] != getattr(v1, k)]
     return {k: d[k] for k in keys}
