@@ -356,6 +356,26 @@ def test_a_wider_auxiliary_network_starts_afresh_beside_a_trained_basis(tmp_path
     assert "aux_width" not in _schedule(TrainBasisConfig(**TINY))  # type: ignore[arg-type]  # earlier records unchanged
 
 
+def test_a_basis_of_another_latent_size_is_refused_by_the_tto(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """An installed basis whose latent is not the pipeline's 6 numbers (basis v5 has 12) loads and is benchmarked, but
+    a TTO config naming it fails its check with the reason, before any work (docs/design-notes.md item 77)."""
+    import neumatex_core.materials.neural_basis as nb
+    from neumatex_core.tto.config import TTOConfig
+
+    extra = tmp_path / "bases"
+    wide = nb.NeuralBasis(BasisArchitecture(latent_dim=8))
+    wide_id = wide.save(extra / "v0.safetensors", extra / "v0.json", {}, "v0")
+    monkeypatch.setattr(nb, "EXTRA_DIR", extra)
+    nb.load_basis.cache_clear()
+    try:
+        assert nb.basis_latent_dim(wide_id) == 8 and nb.load_basis("cpu", wide_id).arch.latent_dim == 8
+        for key in ("basis", "alternative_basis"):
+            with pytest.raises(ValueError, match=f"{key}='{wide_id}' has 8 latent numbers"):
+                TTOConfig.preset("tiny", init="pbr", material="neural", field="triplane", **{key: wide_id}).check()
+    finally:
+        nb.load_basis.cache_clear()
+
+
 def test_neural_sphere_matches_analytic(basis, shared_data: Path) -> None:  # type: ignore[no-untyped-def]
     """Plastic and metal spheres under studio.exr: the neural render matches the analytic one (common random
     numbers, so the difference is the BSDF error). Thresholds sit ~1.5 dB under what the shipped basis gives on

@@ -212,6 +212,12 @@ def basis_record(record: Path = DEFAULT_RECORD) -> dict[str, object]:
     return dict(json.loads(record.read_text()))
 
 
+def basis_latent_dim(basis_id: str) -> int:
+    """The latent size of the installed basis `basis_id`, from its record (the weights are not read)."""
+    info = json.loads(installed_bases()[basis_id][1].read_text())
+    return int(info["architecture"]["latent_dim"])
+
+
 def check_basis_id(basis_id: str, content_hash: str, basis: NeuralBasis | None = None) -> NeuralBasis:
     """The basis an asset names (`basis` or the default when it is that one, else the installed basis with that id),
     or a BasisError saying which one it needs and which one we have."""

@@ -34,7 +34,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
 
 from neumatex_core.config import Range, check_choices, check_known_keys, check_ranges
-from neumatex_core.materials.neural_basis import installed_bases
+from neumatex_core.materials.neural_basis import LATENT_DIM, basis_latent_dim, installed_bases
 from neumatex_core.tto.loss import PhotoLossKind
 
 FieldKind = Literal["triplane", "uv"]
@@ -321,9 +321,12 @@ class TTOConfig:
             raise ValueError("TTO init='pbr' starts a neural triplane from a PBR fit: it needs material='neural' and "
                              f"field='triplane', got {self.material!r} and {self.field!r}")
         for key in ("basis", "alternative_basis"):
-            if getattr(self, key) and getattr(self, key) not in installed_bases():
-                raise ValueError(f"TTO {key}={getattr(self, key)!r} is not installed (installed: "
-                                 f"{', '.join(installed_bases())})")
+            name = getattr(self, key)
+            if name and name not in installed_bases():
+                raise ValueError(f"TTO {key}={name!r} is not installed (installed: {', '.join(installed_bases())})")
+            if name and basis_latent_dim(name) != LATENT_DIM:  # e.g. basis v5 (docs/design-notes.md item 77)
+                raise ValueError(f"TTO {key}={name!r} has {basis_latent_dim(name)} latent numbers; the material "
+                                 f"field, the LMRM and the asset format hold {LATENT_DIM}")
         if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
             raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
                              f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")
