@@ -3,8 +3,8 @@
 # docs/design-notes.md item 30). Output: OUT/<name>.safetensors + .json per candidate, OUT/train.log.
 #   OUT=out BUDGET=430 tools/train_basis_gpu.sh finetune   # v3a-c: warm-started from basis v2
 #   OUT=out BUDGET=330 tools/train_basis_gpu.sh latent     # from scratch at latent sizes 6, 8 and 12
-#   OUT=out BUDGET=390 tools/train_basis_gpu.sh aux        # a wider auxiliary (T, R) network at latent 6 and 12
-#                                                          # (G12: a basis of latent 12, e.g. grow's g12)
+#   OUT=out BUDGET=390 tools/train_basis_gpu.sh aux        # a wider auxiliary (T, R) network at latent 6 and 12,
+#                                                          # and c12: G12 (grow's g12) continued (item 77)
 #   OUT=out BUDGET=420 tools/train_basis_gpu.sh grow       # basis v4 grown to latent 8 and 12 (and kept at 6) on
 #                                                          # v4's render-unit objective; g8w4 weighs it twice (item 77)
 set -uo pipefail
