@@ -340,8 +340,7 @@ def train_basis(
         state = load_file(cfg.init)
         if state["aux.0.weight"].shape[0] != fresh["aux.0.weight"].shape[0]:
             state = {k: v for k, v in state.items() if not k.startswith("aux.")}
-        grown = grow_latent(state, fresh)
-        basis.load_state_dict({**{k: v for k, v in fresh.items() if k.startswith("aux.")}, **grown})
+        basis.load_state_dict({**fresh, **grow_latent(state, fresh)})
     history: dict[str, list[float]] = {s: [] for s in STAGES}
     seconds: dict[str, float] = {s: 0.0 for s in STAGES}
     start_stage, start_step, opt_state = 0, 0, None

@@ -214,8 +214,8 @@ def basis_record(record: Path = DEFAULT_RECORD) -> dict[str, object]:
 
 def basis_latent_dim(basis_id: str) -> int:
     """The latent size of the installed basis `basis_id`, from its record (the weights are not read)."""
-    info = json.loads(installed_bases()[basis_id][1].read_text())
-    return int(info["architecture"]["latent_dim"])
+    architecture = basis_record(installed_bases()[basis_id][1])["architecture"]
+    return int(architecture["latent_dim"])  # type: ignore[index]
 
 
 def check_basis_id(basis_id: str, content_hash: str, basis: NeuralBasis | None = None) -> NeuralBasis:

@@ -324,9 +324,10 @@ class TTOConfig:
             name = getattr(self, key)
             if name and name not in installed_bases():
                 raise ValueError(f"TTO {key}={name!r} is not installed (installed: {', '.join(installed_bases())})")
-            if name and basis_latent_dim(name) != LATENT_DIM:  # e.g. basis v5 (docs/design-notes.md item 77)
-                raise ValueError(f"TTO {key}={name!r} has {basis_latent_dim(name)} latent numbers; the material "
-                                 f"field, the LMRM and the asset format hold {LATENT_DIM}")
+            size = basis_latent_dim(name) if name else LATENT_DIM
+            if size != LATENT_DIM:  # e.g. basis v5 (docs/design-notes.md item 77)
+                raise ValueError(f"TTO {key}={name!r} has {size} latent numbers; the material field, the LMRM and "
+                                 f"the asset format hold {LATENT_DIM}")
         if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
             raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
                              f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")
