@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -305,6 +306,32 @@ def test_training_batches_and_latent_size(tmp_path: Path) -> None:
         train_basis(TrainBasisConfig(out=str(tmp_path / "l8"), latent_dim=12, **TINY), torch.device("cpu"))  # type: ignore[arg-type]
 
 
+def test_the_mixture_family_can_be_drawn_more_often(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """`mixture_weight`: the prior's mixture family gets that many times the sets of each other family; at 1 the
+    draws are the ones before the option (the same calls on the generator, so the same batches bit for bit), and
+    the schedule leaves it out (docs/design-notes.md item 78)."""
+    import neumatex_core.materials.basis_training as bt
+
+    drawn: list[tuple[str, int]] = []
+    sample = bt.sample_parameters
+
+    def counting(family: str, n: int, g: torch.Generator) -> torch.Tensor:
+        drawn.append((family, n))
+        return sample(family, n, g)
+
+    monkeypatch.setattr(bt, "sample_parameters", counting)
+    plain = bt.draw_parameters(1100, torch.Generator().manual_seed(5))
+    assert drawn == [(f, 104) for f in bt.FAMILIES]  # ceil(825 / 8): the rule before the option
+    assert torch.equal(plain, bt.draw_parameters(1100, torch.Generator().manual_seed(5), 0.25, 1.0))
+    drawn.clear()
+    weighted = bt.draw_parameters(1100, torch.Generator().manual_seed(5), 0.25, 4.0)
+    counts = dict(drawn)
+    assert counts["mixture"] == 300 and all(counts[f] == 75 for f in bt.FAMILIES if f != "mixture")
+    assert weighted.shape == (1100, 22) and not torch.equal(weighted, plain)
+    assert "mixture_weight" not in bt._schedule(TrainBasisConfig(**TINY))  # type: ignore[arg-type]
+    assert bt._schedule(TrainBasisConfig(mixture_weight=4.0, **TINY))["mixture_weight"] == 4.0  # type: ignore[arg-type]
+
+
 def test_a_larger_latent_starts_from_a_trained_basis(tmp_path: Path) -> None:
     """grow_latent widens a 6-number basis to 8 numbers without changing what it evaluates (bsdf, T/R, sampling
     lobes), so `--init` with a larger `--latent-dim` fine-tunes from it; the new numbers do move in training."""
@@ -356,10 +383,13 @@ def test_a_wider_auxiliary_network_starts_afresh_beside_a_trained_basis(tmp_path
     assert "aux_width" not in _schedule(TrainBasisConfig(**TINY))  # type: ignore[arg-type]  # earlier records unchanged
 
 
-def test_a_basis_of_another_latent_size_is_refused_by_the_tto(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """An installed basis whose latent is not the pipeline's 6 numbers (basis v5 has 12) loads and is benchmarked, but
-    a TTO config naming it fails its check with the reason, before any work (docs/design-notes.md item 77)."""
+def test_a_basis_of_another_latent_size_is_an_evaluation_variant(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """An installed basis whose latent is not the asset format's 6 numbers (v5 has 12, v6 16) loads and is
+    benchmarked, and the TTO runs a triplane in it (tests/test_tto.py), but an extraction naming it is refused with
+    the reason before any work, and so are the choice between bases and the UV field (docs/design-notes.md items 77,
+    78)."""
     import neumatex_core.materials.neural_basis as nb
+    from neumatex_core.pipeline import ExtractConfig
     from neumatex_core.tto.config import TTOConfig
 
     extra = tmp_path / "bases"
@@ -369,9 +399,13 @@ def test_a_basis_of_another_latent_size_is_refused_by_the_tto(tmp_path: Path, mo
     nb.load_basis.cache_clear()
     try:
         assert nb.basis_latent_dim(wide_id) == 8 and nb.load_basis("cpu", wide_id).arch.latent_dim == 8
-        for key in ("basis", "alternative_basis"):
-            with pytest.raises(ValueError, match=f"{key}='{wide_id}' has 8 latent numbers"):
-                TTOConfig.preset("tiny", init="pbr", material="neural", field="triplane", **{key: wide_id}).check()
+        tto = TTOConfig.preset("tiny", init="pbr", reg="none", material="neural", field="triplane", basis=wide_id)
+        tto.check()
+        with pytest.raises(ValueError, match=f"basis='{wide_id}' has 8 latent numbers; the asset format"):
+            replace(ExtractConfig.preset("tiny"), init="pbr", tto=tto).check()
+        for bad in ({"basis": "", "alternative_basis": wide_id}, {"field": "uv", "init": "random"}):
+            with pytest.raises(ValueError, match=f"'{wide_id}' has 8 latent numbers: only a triplane field"):
+                replace(tto, **bad).check()
     finally:
         nb.load_basis.cache_clear()
 

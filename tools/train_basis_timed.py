@@ -69,6 +69,7 @@ def main() -> int:
     ap.add_argument("--render-base", type=float, default=0.5)
     ap.add_argument("--mirror-share", type=float, default=0.0)
     ap.add_argument("--uniform-share", type=float, default=0.25)
+    ap.add_argument("--mixture-weight", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--latent-dim", type=int, default=6)
     ap.add_argument("--aux-width", type=int, default=64)
@@ -83,7 +84,8 @@ def main() -> int:
                            aux_weight=args.aux_weight, chroma_weight=args.chroma_weight,
                            render_weight=args.render_weight, render_group=args.render_group,
                            render_base=args.render_base, mirror_share=args.mirror_share,
-                           uniform_share=args.uniform_share, init=args.init, version=args.version,
+                           uniform_share=args.uniform_share, mixture_weight=args.mixture_weight, init=args.init,
+                           version=args.version,
                            latent_dim=args.latent_dim, aux_width=args.aux_width, checkpoint_every=2000,
                            device=str(device))  # fmt: skip
     per_step = {s: seconds_per_step(cfg, s, device, args.probe_s if s == "bsdf" else args.probe_s / 2) for s in STAGES}

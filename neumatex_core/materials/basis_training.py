@@ -65,6 +65,8 @@ class TrainBasisConfig:
     heldout: int = option(10000, "held-out parameter sets for the final metrics")
     version: str = option("v1", "basis version label (part of the basis id)")
     uniform_share: float = option(0.25, "share of parameter sets drawn uniformly instead of from the family prior")
+    mixture_weight: float = option(1.0, "the prior's mixture family is drawn this many times as often as each other "
+                                   "family (its colour errors are the basis's worst: docs/design-notes.md item 78)")
     aux_weight: float = option(0.0, "weight of the T/R loss in the bsdf stage (0: the aux network trains alone)")
     chroma_weight: float = option(0.0, "weight of the log-chromaticity L1 in the bsdf stage")
     render_weight: float = option(0.0, "weight of the render-unit term (importance-weighted linear error and "
@@ -87,12 +89,14 @@ def _generator(seed: int, stage: str, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + STAGE_SEED[stage] * 100_000_007 + step)
 
 
-def draw_parameters(n: int, g: torch.Generator, uniform_share: float = 0.25) -> torch.Tensor:
+def draw_parameters(n: int, g: torch.Generator, uniform_share: float = 0.25,
+                    mixture_weight: float = 1.0) -> torch.Tensor:
     """[n, 22]: a share `uniform_share` uniform in [0, 1] (roughness floored), the rest from the family prior
-    (families equally likely), shuffled."""
+    (families equally likely but the mixture, which has `mixture_weight` times the share of each other), shuffled."""
     n_uniform = int(n * uniform_share)
-    per_family = (n - n_uniform + len(FAMILIES) - 1) // len(FAMILIES)
-    prior = torch.cat([sample_parameters(f, per_family, g) for f in FAMILIES])[: n - n_uniform]
+    weights = [mixture_weight if f == "mixture" else 1.0 for f in FAMILIES]
+    counts = [math.ceil((n - n_uniform) * w / sum(weights)) for w in weights]
+    prior = torch.cat([sample_parameters(f, k, g) for f, k in zip(FAMILIES, counts, strict=True)])[: n - n_uniform]
     uniform = torch.rand(n_uniform, N_PARAMS, generator=g)
     for name in ("coat_roughness", "spec_roughness"):  # the prior's floor: no near-mirror lobes (see prior)
         uniform[:, INDEX[name]] = ROUGHNESS_MIN + (1 - ROUGHNESS_MIN) * uniform[:, INDEX[name]]
@@ -121,7 +125,8 @@ class Batch:
 
 
 def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, uniform_share: float = 0.25,
-               device: torch.device | None = None, group: int = 1, mirror_share: float = 0.0) -> Batch:
+               device: torch.device | None = None, group: int = 1, mirror_share: float = 0.0,
+               mixture_weight: float = 1.0) -> Batch:
     """Training samples on `device` (default CPU): see the module docstring.
 
     The random numbers come from `g` on the CPU in a fixed order, so a batch depends on (g, n, group) and not on
@@ -134,7 +139,7 @@ def draw_batch(n: int, g: torch.Generator, params: torch.Tensor | None = None, u
         raise ValueError(f"batch {n} is not a multiple of the group size {group}")
     dev = torch.device("cpu") if device is None else device
     sets = n // group
-    params = (draw_parameters(sets, g, uniform_share) if params is None else params).to(dev)
+    params = (draw_parameters(sets, g, uniform_share, mixture_weight) if params is None else params).to(dev)
     wo = uniform_hemisphere(sets, g).to(dev)
     if group > 1:
         params, wo = params.repeat_interleave(group, 0), wo.repeat_interleave(group, 0)
@@ -285,7 +290,7 @@ def training_step(cfg: TrainBasisConfig, stage: str, step: int, basis: NeuralBas
     """One optimiser step of `stage` on step `step`'s batch at learning rate `lr`; returns the loss (with grad)."""
     b = draw_batch(cfg.batch, _generator(cfg.seed, stage, step), uniform_share=cfg.uniform_share, device=device,
                    group=_group(cfg) if stage == "bsdf" else 1,
-                   mirror_share=cfg.mirror_share if stage == "bsdf" else 0.0)
+                   mirror_share=cfg.mirror_share if stage == "bsdf" else 0.0, mixture_weight=cfg.mixture_weight)
     loss = stage_loss(cfg, stage, basis, b)
     opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -402,6 +407,6 @@ def _schedule(cfg: TrainBasisConfig) -> dict[str, object]:
     v1 = TrainBasisConfig()
     # options added after v1 enter the schedule only when set, so v1's record (and checkpoints) keep their meaning
     later = ("uniform_share", "aux_weight", "chroma_weight", "init", "latent_dim", "render_weight", "render_group",
-             "render_base", "mirror_share", "aux_width")
+             "render_base", "mirror_share", "aux_width", "mixture_weight")
     keys += [k for k in later if d[k] != getattr(v1, k)]
     return {k: d[k] for k in keys}
