@@ -51,7 +51,7 @@ from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
-from neumatex_core.materials.neural_basis import BASIS_V4, load_basis
+from neumatex_core.materials.neural_basis import BASIS_V4, LATENT_DIM, basis_latent_dim, load_basis
 from neumatex_core.tto.config import PRESETS, UNIFORM_RHO_VALUE, TTOConfig  # extract presets use TTO presets
 from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.pbr_start import CHOICES, solve
@@ -500,6 +500,9 @@ def evaluation_only(tto: TTOConfig) -> str:
         return "TTO reg='oracle' needs ground-truth G-buffers; it is an evaluation variant (neumatex eval)"
     if tto.material != "neural":
         return "TTO material='pbr' is the PBR baseline for evaluation; an asset holds a neural material"
+    if tto.basis and basis_latent_dim(tto.basis) != LATENT_DIM:
+        return (f"TTO basis={tto.basis!r} has {basis_latent_dim(tto.basis)} latent numbers; the asset format and "
+                f"its viewer hold {LATENT_DIM}: an evaluation variant for now (docs/design-notes.md item 78)")
     return ""
 
 

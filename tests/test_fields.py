@@ -81,6 +81,27 @@ def test_decoders_ranges_shapes_and_ids():
     assert module_id(dec) != module_id(same)
 
 
+def test_a_material_decoder_is_resized_for_a_basis_of_another_latent_size():
+    """`with_latent_dim`: rho_d and the first latent numbers are the decoder's own, the added ones come from a fixed
+    seed (the same copy every time: the PBR start is fitted through one and the TTO reads another), the shrunk copy
+    keeps the first ones, and the record's architecture rebuilds it (docs/design-notes.md item 78)."""
+    torch.manual_seed(0)
+    feats = torch.randn(64, 24)
+    dec = MaterialDecoder(24)
+    rho, lat = dec(feats)
+    wide, again = dec.with_latent_dim(16), dec.with_latent_dim(16)
+    rho_w, lat_w = wide(feats)
+    assert lat_w.shape == (64, 16) and torch.equal(rho_w, rho) and torch.equal(lat_w[:, :6], lat)
+    other_seed = dec.with_latent_dim(16, seed=1)(feats)[1]
+    assert torch.equal(lat_w, again(feats)[1]) and not torch.equal(lat_w[:, 6:], other_seed[:, 6:])
+    assert lat_w[:, 6:].std() > 0.05  # the added rows are a fresh layer's, not silent: the fit can move them
+    assert torch.equal(dec.with_latent_dim(4)(feats)[1], lat[:, :4])
+    rebuilt = MaterialDecoder(**wide.architecture())
+    rebuilt.load_state_dict(wide.state_dict())
+    assert wide.architecture()["latent_dim"] == 16 and "latent_dim" not in dec.architecture()
+    assert module_id(rebuilt) == module_id(wide)
+
+
 def test_sample_uv_convention():
     tex = torch.arange(2 * 4 * 1, dtype=torch.float32).view(2, 4, 1)  # rows 0..1, cols 0..3
     # texel (i, j) centre: u = (j + 0.5) / 4, v = 1 - (i + 0.5) / 2 (row 0 is the top, v up)

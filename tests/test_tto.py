@@ -1181,6 +1181,39 @@ def test_the_decoder_is_fine_tuned_in_the_default_basis_only_unless_asked(exampl
     assert is_lmrms(named) and torch.equal(named.params.tensor, taken.params.tensor)
 
 
+def test_the_tto_runs_in_a_basis_of_another_latent_size(example, truth_prediction):
+    """Basis v5 (12 latent numbers) as `basis`: the neural triplane reads the LMRM's material decoder resized
+    (`MaterialDecoder.with_latent_dim`: its rho_d rows and first six latent rows kept, the others fresh, the same at
+    every call), the PBR solution is fitted in the new basis about as closely as in the default one, and the TTO runs
+    to a finite material of 15 G-buffer channels. The choice between bases and the UV field refuse another size
+    (docs/design-notes.md item 78)."""
+    from neumatex_core.materials.neural_basis import BASIS_V4, BASIS_V5, load_basis
+    from neumatex_core.tto import solve
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, train_decoder=True, pbr_fit_steps=300)  # fmt: skip
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2))
+    in_v1 = solve(cfg, *args, example.basis)
+    in_v5 = solve(replace(cfg, basis=BASIS_V5, decoder_in_other_basis=False), *args, load_basis(basis_id=BASIS_V5))
+    assert in_v5.params.field().basis.basis_id == BASIS_V5
+    lmrm = truth_prediction.material_decoder.net[-1].weight
+    resized = in_v5.params.decoder.net[-1].weight
+    assert resized.shape == (15, lmrm.shape[1]) and torch.equal(resized[:9], lmrm)
+    points = example.mesh.sample_surface(256, seed=0)[0]
+    values = in_v5.params.gbuffer(points, None)
+    assert values.shape == (256, 15) and torch.isfinite(values).all()
+
+    def start_mse(result) -> float:
+        return next(row["start_mse"] for row in result.history if row.get("phase") == 1.0)
+
+    print("start fit error v1", start_mse(in_v1), "v5", start_mse(in_v5))
+    assert start_mse(in_v5) < 2 * start_mse(in_v1)
+    for bad in ({"alternative_basis": BASIS_V5}, {"basis": BASIS_V4, "alternative_basis": BASIS_V5},
+                {"basis": BASIS_V5, "field": "uv", "init": "random", "reg": "none"}):
+        with pytest.raises(ValueError, match="has 12 latent numbers"):
+            replace(cfg, **bad).check()
+
+
 def test_solve_runs_the_neural_phase_in_the_basis_it_chose(example, truth_prediction):
     """With alternative_basis, `solve` chooses the basis after the PBR phase and starts the neural phase there: the
     result is bit for bit the plain TTO in the chosen basis (kept: the configured one; taken: the alternative, whose

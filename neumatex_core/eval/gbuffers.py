@@ -77,5 +77,7 @@ def gbuffer_psnr(fn: GBufferFn, gt: GroundTruth, chunk: int = 1 << 15) -> dict[s
         pred = torch.cat([fn(gt.points[s:s + chunk]).cpu() for s in range(0, gt.points.shape[0], chunk)])
     truth = gt.values
     rho = float(((pred[:, :3].double() - truth[:, :3].double()) ** 2).mean())
+    if pred.shape[1] != truth.shape[1]:  # a basis of another latent size (TTOConfig.basis): nothing to compare
+        return {"psnr_basecolor": _psnr(rho), "psnr_latents": math.nan}
     lat = float((((pred[:, 3:].double() - truth[:, 3:].double()) / 2) ** 2).mean())
     return {"psnr_basecolor": _psnr(rho), "psnr_latents": _psnr(lat)}

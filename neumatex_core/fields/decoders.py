@@ -1,6 +1,7 @@
 """Small MLP decoders from triplane features [N, F] (F = 3C) to per-point G-buffers (paper eq. 3-6).
 
-- `MaterialDecoder` (M_mat): rho_d [N, 3] in [0, 1] (sigmoid) and latent l [N, 6] in [-1, 1] (tanh);
+- `MaterialDecoder` (M_mat): rho_d [N, 3] in [0, 1] (sigmoid) and latent l [N, K] in [-1, 1] (tanh), K the
+  basis's latent size (6; `with_latent_dim` adapts a decoder to a basis of another size);
 - `UncertaintyDecoder` (M_unc): 9 log-variances [N, 9] (rho_d then l), unbounded;
 - `PBRDecoder` (the LMRM's PBR head): base colour [N, 3], roughness [N], metallic [N], all in [0, 1] (sigmoid).
 
@@ -26,10 +27,10 @@ class _Decoder(nn.Module):
     kind = "decoder"
     n_out = 0
 
-    def __init__(self, in_features: int, hidden: int = 64, layers: int = 2) -> None:
+    def __init__(self, in_features: int, hidden: int = 64, layers: int = 2, n_out: int | None = None) -> None:
         super().__init__()
         self.in_features, self.hidden, self.layers = in_features, hidden, layers
-        self.net = mlp(in_features, [hidden] * layers, self.n_out)
+        self.net = mlp(in_features, [hidden] * layers, self.n_out if n_out is None else n_out)
 
     def architecture(self) -> dict[str, Any]:
         """Constructor arguments (JSON-able): `type(self)(**architecture())` has the same shapes."""
@@ -37,10 +38,37 @@ class _Decoder(nn.Module):
 
 
 class MaterialDecoder(_Decoder):
-    """M_mat: features [N, F] -> (rho_d [N, 3] in [0, 1], latent [N, 6] in [-1, 1])."""
+    """M_mat: features [N, F] -> (rho_d [N, 3] in [0, 1], latent [N, latent_dim] in [-1, 1])."""
 
     kind = "material"
     n_out = N_MATERIAL
+
+    def __init__(self, in_features: int, hidden: int = 64, layers: int = 2, latent_dim: int = LATENT_DIM) -> None:
+        super().__init__(in_features, hidden, layers, 3 + latent_dim)
+        self.latent_dim = latent_dim
+
+    def architecture(self) -> dict[str, Any]:
+        arch = super().architecture()  # the default size is left out, so earlier assets' records stay as they are
+        return arch if self.latent_dim == LATENT_DIM else {**arch, "latent_dim": self.latent_dim}
+
+    def with_latent_dim(self, latent_dim: int, seed: int = 0) -> MaterialDecoder:
+        """A copy whose output holds `latent_dim` latent numbers, for a basis of that size: the hidden layers and
+        rho_d's output rows are kept, and so are the first latent rows; added rows start as a fresh layer's would
+        (from `seed`). Another basis's latents mean something else, so what the kept rows carry over is the
+        features' scale: the PBR start fits the planes to the new basis's latents (tto/pbr_start.py)."""
+        last = len(self.net) - 1  # the output layer's index in the stack
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            fresh = nn.Linear(self.hidden, 3 + latent_dim).state_dict()
+        keep = min(latent_dim, self.latent_dim) + 3
+        state = self.net.state_dict()
+        for name in ("weight", "bias"):
+            fresh[name][:keep] = state[f"{last}.{name}"][:keep]
+            state[f"{last}.{name}"] = fresh[name]
+        out = MaterialDecoder(self.in_features, self.hidden, self.layers, latent_dim)
+        out.net.load_state_dict(state)
+        out.to(state[f"{last}.weight"].device)
+        return out.requires_grad_(any(w.requires_grad for w in self.parameters()))
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out = self.net(features)

@@ -49,6 +49,8 @@ EXTRA_DIR = DATA_DIR / "bases"  # further installed bases, found by id
 BASIS_V2 = "nmx-basis-v2-4af9689561fa"
 BASIS_V3 = "nmx-basis-v3-5e859f599cbd"
 BASIS_V4 = "nmx-basis-v4-2b82d9690606"
+BASIS_V5 = "nmx-basis-v5-783ebde8beb7"  # 12 latent numbers (docs/design-notes.md items 77, 78)
+BASIS_V6 = "nmx-basis-v6-32f5a921a961"  # 16 latent numbers, every sphere family >= 35 dB (item 78)
 LATENT_DIM = 6
 N_DIR_FEATURES = 11
 P_COSINE_MIN = 0.1  # the cosine component keeps this share of the sampling mixture (no unreachable direction)

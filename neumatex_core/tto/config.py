@@ -325,9 +325,11 @@ class TTOConfig:
             if name and name not in installed_bases():
                 raise ValueError(f"TTO {key}={name!r} is not installed (installed: {', '.join(installed_bases())})")
             size = basis_latent_dim(name) if name else LATENT_DIM
-            if size != LATENT_DIM:  # e.g. basis v5 (docs/design-notes.md item 77)
-                raise ValueError(f"TTO {key}={name!r} has {size} latent numbers; the material field, the LMRM and "
-                                 f"the asset format hold {LATENT_DIM}")
+            if size != LATENT_DIM and (key == "alternative_basis" or self.field != "triplane"):
+                # e.g. basis v5: the triplane's decoder takes its size (docs/design-notes.md item 78), but the
+                # choice between two bases and the UV textures hold one size of G-buffer
+                raise ValueError(f"TTO {key}={name!r} has {size} latent numbers: only a triplane field in `basis` "
+                                 f"takes a latent size other than {LATENT_DIM}")
         if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
             raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
                              f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")

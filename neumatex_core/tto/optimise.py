@@ -30,6 +30,7 @@ from neumatex_core.assets.bake import bake, rasterize_uv
 from neumatex_core.assets.uv_unwrap import unwrap
 from neumatex_core.atomic import replaced_atomically
 from neumatex_core.capture.tonemap import Tonemap
+from neumatex_core.fields.decoders import MaterialDecoder
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.fields.uv_textures import MATERIAL_CHANNELS, PBR_CHANNELS
 from neumatex_core.geometry.mesh import Mesh
@@ -197,7 +198,7 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
             params = PBRUV(tex)
         params.project()
     elif config.material == "neural":
-        params = NeuralTriplane(start, _decoder_copy(anchor_pred.material_decoder, config), basis)
+        params = NeuralTriplane(start, _decoder_copy(_decoder_for(anchor_pred.material_decoder, basis), config), basis)
     else:
         params = PBRTriplane(start, _decoder_copy(anchor_pred.pbr_decoder, config))
     anchor = None
@@ -219,6 +220,14 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
         anchor = Anchor(points, uv, target, weight)
     exposure = ExposureFit(photos.count, device) if config.photo_exposure else None
     return TTOProblem(scene_mesh, envmap, photos, tonemap, params, anchor, device, exposure)
+
+
+def _decoder_for(decoder: MaterialDecoder, basis: NeuralBasis) -> MaterialDecoder:
+    """The LMRM's material decoder, or where `basis` has another latent size (TTOConfig.basis) its copy of that
+    size (`MaterialDecoder.with_latent_dim`: the same copy at every call, since the start's planes are fitted through
+    one and read through another)."""
+    size = basis.arch.latent_dim
+    return decoder if size == decoder.latent_dim else decoder.with_latent_dim(size).requires_grad_(False)
 
 
 def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
