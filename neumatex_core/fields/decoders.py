@@ -28,6 +28,7 @@ class _Decoder(nn.Module):
     n_out = 0
 
     def __init__(self, in_features: int, hidden: int = 64, layers: int = 2, n_out: int | None = None) -> None:
+        """n_out: the output width, where a subclass's depends on its arguments (else the class's `n_out`)."""
         super().__init__()
         self.in_features, self.hidden, self.layers = in_features, hidden, layers
         self.net = mlp(in_features, [hidden] * layers, self.n_out if n_out is None else n_out)
@@ -41,7 +42,6 @@ class MaterialDecoder(_Decoder):
     """M_mat: features [N, F] -> (rho_d [N, 3] in [0, 1], latent [N, latent_dim] in [-1, 1])."""
 
     kind = "material"
-    n_out = N_MATERIAL
 
     def __init__(self, in_features: int, hidden: int = 64, layers: int = 2, latent_dim: int = LATENT_DIM) -> None:
         super().__init__(in_features, hidden, layers, 3 + latent_dim)
