@@ -500,9 +500,10 @@ def evaluation_only(tto: TTOConfig) -> str:
         return "TTO reg='oracle' needs ground-truth G-buffers; it is an evaluation variant (neumatex eval)"
     if tto.material != "neural":
         return "TTO material='pbr' is the PBR baseline for evaluation; an asset holds a neural material"
-    if tto.basis and basis_latent_dim(tto.basis) != LATENT_DIM:
-        return (f"TTO basis={tto.basis!r} has {basis_latent_dim(tto.basis)} latent numbers; the asset format and "
-                f"its viewer hold {LATENT_DIM}: an evaluation variant for now (docs/design-notes.md item 78)")
+    size = basis_latent_dim(tto.basis) if tto.basis else LATENT_DIM
+    if size != LATENT_DIM:
+        return (f"TTO basis={tto.basis!r} has {size} latent numbers; the asset format and its viewer hold "
+                f"{LATENT_DIM}: an evaluation variant for now (docs/design-notes.md item 78)")
     return ""
 
 

@@ -226,8 +226,8 @@ def _decoder_for(decoder: MaterialDecoder, basis: NeuralBasis) -> MaterialDecode
     """The LMRM's material decoder, or where `basis` has another latent size (TTOConfig.basis) its copy of that
     size (`MaterialDecoder.with_latent_dim`: the same copy at every call, since the start's planes are fitted through
     one and read through another)."""
-    size = basis.arch.latent_dim
-    return decoder if size == decoder.latent_dim else decoder.with_latent_dim(size).requires_grad_(False)
+    size = basis.arch.latent_dim  # the copy is frozen like the decoder it is made from
+    return decoder if size == decoder.latent_dim else decoder.with_latent_dim(size)
 
 
 def _decoder_copy(decoder: Any, config: TTOConfig) -> Any:
