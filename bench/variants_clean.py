@@ -35,6 +35,12 @@ that differs from it only in the uniform/textured choice's margin and makes the 
     .venv/bin/python bench/variants_clean.py --to-eval bench/results/eval-clean \\
         --variants pbr_start_default_settle_decdb
 
+`--against-page OUT` (with --summarise) takes the --against baselines' rows from the evaluation in OUT (its
+results/<object>/<variant>.json, what its page shows), e.g. a candidate against the default's page:
+
+    .venv/bin/python bench/variants_clean.py --summarise --variants default_v6_dec --against-page \\
+        bench/results/eval-clean --against pbr_start_default_settle_decdb_slr10_s900_m0,pbr,truth
+
 `--by-family BASELINE` (with --summarise) also prints each variant minus BASELINE per material family (the families
 of an object's regions, from its meta.json; an object with two counts in both rows) and over all objects, with the
 number of objects on which the variant is ahead.
@@ -198,9 +204,22 @@ def object_table(stored: dict[str, dict[str, dict[str, float]]], variant: str, b
         print(f"| {o}{' <' if behind else ''} | " + " | ".join(cells) + " |")
 
 
+def page_rows(out: Path, variant: str) -> dict[str, dict[str, float]]:
+    """object -> scores of `variant` in the evaluation in `out` (OUT/results/<object>/<variant>.json: what its page
+    shows, e.g. bench/results/eval-clean for docs/default/results.md)."""
+    rows = {}
+    for path in sorted(out.glob(f"results/*/{variant}.json")):
+        result = json.loads(path.read_text())
+        rows[path.parent.name] = {m: float(result[m]) for m in METRICS if m in result}
+    return rows
+
+
 def summarise(variants: list[str], against: list[str], fill_from: list[str] | None = None,
-              by_family: tuple[Path, str] | None = None, since: str = "", per_object: str = "") -> int:
+              by_family: tuple[Path, str] | None = None, since: str = "", per_object: str = "",
+              page: Path | None = None) -> int:
     stored = stored_rows(since)
+    for base in against if page is not None else []:
+        stored[base] = page_rows(page, base)
     for variant in variants if fill_from else []:
         scores = basis_scores(variant)
         mine = stored.setdefault(variant, {})
@@ -302,6 +321,9 @@ def main() -> int:
                         "BASELINE per material family of the objects (their meta.json), and on how many it is ahead")
     parser.add_argument("--per-object", default="", metavar="BASELINE", help="with --summarise: also each variant - "
                         "BASELINE object by object")
+    parser.add_argument("--against-page", default="", metavar="OUT", help="with --summarise: the --against "
+                        "baselines' rows are those of the evaluation in OUT (e.g. bench/results/eval-clean: the "
+                        "default's page), not this file's")
     parser.add_argument("--to-eval", default="", metavar="OUT", help="write --variants' rows as results of the "
                         "evaluation in OUT (for `neumatex eval --out OUT --report-only`) and stop")
     args = parser.parse_args()
@@ -311,7 +333,7 @@ def main() -> int:
     if args.summarise:
         return summarise(variants, against, [v for v in args.fill_from.split(",") if v],
                          (Path(args.data), args.by_family) if args.by_family else None, args.since,
-                         args.per_object)
+                         args.per_object, Path(args.against_page) if args.against_page else None)
     data = Path(args.data)
     done = stored_rows(args.since)
     jobs = [(str(data / o), str(Path(args.work) / o), v) for v in variants for o in select_objects(data, args.objects)

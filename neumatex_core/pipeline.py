@@ -51,9 +51,10 @@ from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
-from neumatex_core.materials.neural_basis import BASIS_V4, LATENT_DIM, basis_latent_dim, load_basis
+from neumatex_core.materials.neural_basis import BASIS_V4, load_basis
 from neumatex_core.tto.config import PRESETS, UNIFORM_RHO_VALUE, TTOConfig  # extract presets use TTO presets
 from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.optimise import decoder_for
 from neumatex_core.tto.pbr_start import CHOICES, solve
 
 STAGES = ("validate", "prepare_views", "lmrm", "tto", "export")
@@ -500,10 +501,6 @@ def evaluation_only(tto: TTOConfig) -> str:
         return "TTO reg='oracle' needs ground-truth G-buffers; it is an evaluation variant (neumatex eval)"
     if tto.material != "neural":
         return "TTO material='pbr' is the PBR baseline for evaluation; an asset holds a neural material"
-    size = basis_latent_dim(tto.basis) if tto.basis else LATENT_DIM
-    if size != LATENT_DIM:
-        return (f"TTO basis={tto.basis!r} has {size} latent numbers; the asset format and its viewer hold "
-                f"{LATENT_DIM}: an evaluation variant for now (docs/design-notes.md item 78)")
     return ""
 
 
@@ -640,18 +637,18 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
         raise PipelineError(evaluation_only(tto))
     stored = load_file(str(stage_dir(work, "tto") / "result.safetensors"))
     tensor = stored["tensor"].to(device)
-    material_decoder = pred.material_decoder
-    tuned = {k.removeprefix("decoder."): v.to(device) for k, v in stored.items() if k.startswith("decoder.")}
-    if tuned:  # the TTO fine-tuned a copy of the material decoder (TTOConfig.train_decoder)
-        material_decoder = copy.deepcopy(pred.material_decoder)
-        material_decoder.load_state_dict(tuned)
-        material_decoder.requires_grad_(False)
     history = json.loads((stage_dir(work, "tto") / "history.json").read_text())
     stage_metrics = {s: read_done(work, s) for s in STAGES[:-1]}
     timings = {f"{s}_s": float(m.get("seconds", 0.0)) for s, m in stage_metrics.items()}
     timings.update({f"{s}_cpu_s": float(m.get("cpu_seconds", 0.0)) for s, m in stage_metrics.items()})
     # the basis the TTO's result is in: the config's, or the alternative it chose (TTOConfig.alternative_basis)
     basis = load_basis(str(device), str(stage_metrics["tto"].get("basis", tto.basis)))
+    material_decoder = decoder_for(pred.material_decoder, basis)  # resized where the basis's latent size is not 6
+    tuned = {k.removeprefix("decoder."): v.to(device) for k, v in stored.items() if k.startswith("decoder.")}
+    if tuned:  # the TTO fine-tuned a copy of the material decoder (TTOConfig.train_decoder)
+        material_decoder = copy.deepcopy(material_decoder)
+        material_decoder.load_state_dict(tuned)
+        material_decoder.requires_grad_(False)
     with _open_capture(capture) as cap:
         norm = _normalised(cap, work, device)
         name = config.name or cap.root.name

@@ -47,7 +47,7 @@ def test_schema_bounds_are_the_core_ranges() -> None:
     ({"init": "random", "variation": "uniform"}, "variation='uniform'"),
     ({"tto": {"select_uniform": True, "lambda_consistency": 0}}, "select_uniform"),
     ({"tto": {"alternative_basis": "nmx-basis-v9"}}, "alternative_basis='nmx-basis-v9' is not installed"),
-    ({"init": "pbr", "tto": {"basis": "nmx-basis-v5-783ebde8beb7"}}, "has 12 latent numbers; the asset format"),
+    ({"tto": {"alternative_basis": "nmx-basis-v5-783ebde8beb7"}}, "has 12 latent numbers: only a triplane field"),
 ])  # fmt: skip
 def test_bad_configs_are_refused_before_the_job(overrides: dict, words: str) -> None:
     with pytest.raises(ValueError, match=words.replace("(", r"\(").replace(".", r"\.")):

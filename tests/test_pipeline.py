@@ -18,7 +18,7 @@ from tto_fixtures import EXAMPLE
 from neumatex_core.assets import read_asset
 from neumatex_core.cli import main
 from neumatex_core.lmrm import LMRMConfig, LMRMNet, save_lmrm
-from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.materials.neural_basis import BASIS_V2, BASIS_V6, basis_latent_dim, load_basis
 from neumatex_core.pipeline import (
     STAGES,
     Cancelled,
@@ -105,18 +105,23 @@ def test_stages_are_idempotent_and_resume_after_an_interruption(tmp_path, tiny_l
         assert (out / "report" / src).is_file(), src
 
 
-def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp_path, tiny_lmrm):
-    """TTOConfig.basis: the neural TTO from the PBR solution in basis v2; the asset names v2 and reads back in it.
+@pytest.mark.parametrize("basis_id", [BASIS_V2, BASIS_V6], ids=["v2", "v6-16-latents"])
+def test_extraction_in_another_installed_basis_writes_an_asset_that_names_it(tmp_path, tiny_lmrm, basis_id):
+    """TTOConfig.basis: the neural TTO from the PBR solution in basis v2 (6 latents), or in v6 (16 latents, the
+    material decoder resized and fine-tuned); the asset names the basis, holds its latent size and reads back in it.
     A start or anchor from the LMRM (whose latents are the default basis's) is refused with the reason."""
-    from neumatex_core.materials.neural_basis import BASIS_V2
     from neumatex_core.tto.config import TTOConfig
 
-    tto = TTOConfig.preset("tiny", steps=4, pbr_steps=4, reg="none", basis=BASIS_V2)
+    k = basis_latent_dim(basis_id)
+    tto = TTOConfig.preset("tiny", steps=4, pbr_steps=4, reg="none", basis=basis_id, train_decoder=k != 6,
+                           decoder_in_other_basis=k != 6)
     with pytest.raises(ValueError, match="another basis needs init 'pbr' or 'random'"):
         config(tiny_lmrm, init="lmrm", tto=tto).check()
     out = extract(EXAMPLE / "photos", tmp_path / "asset", config(tiny_lmrm, init="pbr", tto=tto))
     asset = read_asset(out)
-    assert asset.basis.basis_id == BASIS_V2 != load_basis().basis_id
+    assert asset.basis.basis_id == basis_id != load_basis().basis_id
+    assert asset.material_texture.shape[-1] == 3 + k and asset.decoders["material"].latent_dim == k
+    assert torch.isfinite(asset.material_texture).all() and torch.isfinite(asset.pbr_texture).all()
 
 
 def test_the_basis_the_tto_chose_is_the_assets_and_the_report_says_why(tmp_path, tiny_lmrm):
@@ -237,11 +242,33 @@ def test_evaluate_variant_scores_a_synthetic_object(tmp_path, tiny_lmrm):
     assert set(ours) == {"psnr_basecolor", "psnr_latents", "psnr_pathtrace", "tto_minutes", "tto_cpu_minutes"}
     assert all(math.isfinite(v) for v in ours.values()) and ours["tto_minutes"] > 0
     assert ours["psnr_basecolor"] != base["psnr_basecolor"]  # the TTO moved the material
-    # a result in another basis (here basis v4) has latents that do not compare with the truth's: not scored
+    # a result in another basis (here basis v4) is scored against the truth's latents in that basis
     in_v4 = evaluate_variant(EXAMPLE, work, "pbr_start_v4", cfg, render_views=(0,), render_spp=2)
-    assert math.isnan(in_v4["psnr_latents"]) and math.isfinite(in_v4["psnr_basecolor"])
+    assert math.isfinite(in_v4["psnr_latents"]) and math.isfinite(in_v4["psnr_basecolor"])
     with pytest.raises(ValueError, match="unknown variant"):
         evaluate_variant(EXAMPLE, work, "nope", cfg)
+
+
+def test_the_truths_latents_in_another_basis_encode_each_regions_parameters():
+    """ground_truth(basis=...): a synthetic object's latents in a basis other than the one it was made in (here v6,
+    16 latents) are that basis's encoding of each pixel's region's layered parameters, as the stored ones are the
+    shipped basis's encoding of the same parameters; the base colour is unchanged."""
+    from neumatex_core.eval import ground_truth
+    from neumatex_core.materials.layered import PARAMETER_NAMES
+
+    v1, v6 = load_basis(), load_basis("cpu", BASIS_V6)
+    stored, in_v6 = ground_truth(EXAMPLE, [0, 5]), ground_truth(EXAMPLE, [0, 5], v6)
+    assert in_v6.values.shape == (stored.values.shape[0], 3 + 16)
+    assert torch.equal(in_v6.values[:, :3], stored.values[:, :3]) and torch.equal(in_v6.points, stored.points)
+    regions = json.loads((EXAMPLE / "material.json").read_text())["regions"]
+    params = torch.tensor([[r["params"][name] for name in PARAMETER_NAMES] for r in regions])
+    with torch.no_grad():
+        enc1, enc6 = v1.encode(params), v6.encode(params)
+    # each pixel's region, from its stored latent (the shipped basis's encoding of its region's parameters)
+    region = torch.cdist(stored.values[:, 3:], enc1).argmin(1)
+    assert torch.allclose(stored.values[:, 3:], enc1[region], atol=1e-6) and len(region.unique()) == len(regions) > 1
+    assert torch.equal(in_v6.values[:, 3:], enc6[region])
+    assert torch.equal(ground_truth(EXAMPLE, [0, 5], v1).values, stored.values)  # its own basis: the stored buffers
 
 
 def test_a_pbr_result_is_scored_on_its_lambertian_base_colour():

@@ -31,7 +31,7 @@ from neumatex_core.assets import read_asset, write_asset
 from neumatex_core.assets.render import render_asset
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.gbuffer import render_gbuffer
-from neumatex_core.materials.neural_basis import load_basis
+from neumatex_core.materials.neural_basis import BASIS_V6, load_basis
 from neumatex_core.render.path_tracer import PathTracerConfig
 from neumatex_core.viewer.serve import serve_folder
 from neumatex_core.viewer.web_bundle import BUNDLE, EnvSource, env_tables, torch_envmap, write_bundle
@@ -44,9 +44,10 @@ PSNR_MIN = 30.0
 SIZE, FRAMES, SPP, REF_SPP = 32, 48, 4, 512
 
 
-@pytest.fixture(scope="module")
-def asset_dir(tmp_path_factory):
-    basis = load_basis()
+# The shipped basis (6 latents) and basis v6 (16): the bundle's channels and the shader follow the latent size.
+@pytest.fixture(scope="module", params=["", BASIS_V6], ids=["default-basis", "basis-v6"])
+def asset_dir(request, tmp_path_factory):
+    basis = load_basis("cpu", request.param)
     folder = tmp_path_factory.mktemp("viewer") / "sphere"
     write_asset(sphere_asset(basis), folder)
     return folder
@@ -76,13 +77,22 @@ def _mlp_numpy(data: np.ndarray, layers: list[dict], bias_offset: int, x: np.nda
     return h
 
 
-def test_bundle_holds_the_basis_and_the_map_sampling(bundle):
+def test_bundle_holds_the_basis_and_the_map_sampling(asset_dir, bundle):
     info = json.loads((bundle / BUNDLE).read_text())
     data = np.fromfile(bundle / info["basis"]["file"], dtype="<f4")
-    basis = load_basis()
-    assert info["basis"]["basis_id"] == basis.basis_id
+    asset = read_asset(asset_dir)
+    basis = asset.basis
+    k = basis.arch.latent_dim
+    assert info["basis"]["basis_id"] == basis.basis_id and info["basis"]["latent_dim"] == k
+    # the textures: rho_d, the k latents, the PBR fallback, the mask, zero padding to whole RGBA textures
+    texels = np.fromfile(bundle / info["material"]["file"], dtype="<f4")
+    channels = info["material"]["channels"]
+    assert channels % 4 == 0 and 3 + k + 6 <= channels < 3 + k + 10
+    texels = texels.reshape(asset.texture_resolution, asset.texture_resolution, channels)
+    assert np.array_equal(texels[..., : 3 + k], asset.material_texture.numpy())
+    assert np.array_equal(texels[..., 3 + k + 5], asset.texel_mask.numpy().astype(np.float32))
     g = torch.Generator().manual_seed(0)
-    latent = torch.rand(64, 6, generator=g) * 2 - 1
+    latent = torch.rand(64, k, generator=g) * 2 - 1
     wi = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([-0.5, -0.5, 0.2]), dim=-1)
     wo = torch.nn.functional.normalize(torch.rand(64, 3, generator=g) + torch.tensor([-0.5, -0.5, 0.2]), dim=-1)
     from neumatex_core.materials.neural_basis import direction_features

@@ -2,7 +2,8 @@
 
 A `MaterialAsset` holds everything a package stores (docs/architecture.md section 8): the object-space mesh with
 xatlas uvs, the neural field (a triplane with its decoders, or UV textures), the baked textures (rho_d + latent
-[R, R, 9]), the PBR fallback textures ([R, R, 5], 8-bit exact), previews, provenance, metrics and timings.
+[R, R, 3 + K], K the basis's latent size: 6 in the paper's), the PBR fallback textures ([R, R, 5], 8-bit exact),
+previews, provenance, metrics and timings.
 `field(source)` gives the renderable MaterialField of any of its representations.
 
     asset = asset_from_triplane("vase", mesh, TriplaneMaterialField(triplane, decoder, basis), resolution=512)
@@ -25,7 +26,7 @@ from neumatex_core.assets.uv_unwrap import unwrap
 from neumatex_core.fields.decoders import MaterialDecoder
 from neumatex_core.fields.neural_field import TriplaneMaterialField
 from neumatex_core.fields.triplane import Triplane
-from neumatex_core.fields.uv_textures import MATERIAL_CHANNELS, PBRTextureField, UVTextureField
+from neumatex_core.fields.uv_textures import PBRTextureField, UVTextureField, material_channels
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.materials.field import MaterialField
 from neumatex_core.materials.neural_basis import NeuralBasis
@@ -37,9 +38,9 @@ FieldKind = Literal["triplane", "uv_textures"]
 @dataclass
 class MaterialAsset:
     """name; mesh (object space, in the unit sphere, with uvs and vertex normals); basis (frozen);
-    material_texture [R, R, 9] (rho_d in [0, 1], latent in [-1, 1]); pbr_texture [R, R, 5] (base colour, roughness,
-    metallic; 8-bit exact); triplane + decoders ("material" required with a triplane; "uncertainty", "pbr" optional)
-    or None for a UV-texture asset; texel_mask [R, R] (texels on the surface); previews name -> display image
+    material_texture [R, R, 3 + K] (rho_d in [0, 1], latent [K] in [-1, 1]); pbr_texture [R, R, 5] (base colour,
+    roughness, metallic; 8-bit exact); triplane + decoders ("material" required with a triplane; "uncertainty", "pbr"
+    optional) or None for a UV-texture asset; texel_mask [R, R] (texels on the surface); previews name -> display image
     [H, W, 3]; centre/scale: the capture mesh's normalisation (p_object = (p_capture - centre) * scale), if known."""
 
     name: str
@@ -100,8 +101,10 @@ def _ensure_normals(mesh: Mesh) -> Mesh:
 
 def bake_triplane(field_: TriplaneMaterialField, samples: TexelSamples,
                   device: torch.device | str = "cpu") -> torch.Tensor:
-    """Texture [R, R, 9] of the field's (rho_d, latent) at the texel samples (dilated)."""
-    return bake(samples, lambda p: torch.cat(field_.gbuffer(p), dim=-1), MATERIAL_CHANNELS, device=device)
+    """Texture [R, R, 3 + K] of the field's (rho_d, latent) at the texel samples (dilated); K: the basis's latent
+    size."""
+    return bake(samples, lambda p: torch.cat(field_.gbuffer(p), dim=-1), material_channels(field_.basis),
+                device=device)
 
 
 def asset_from_triplane(name: str, mesh: Mesh, field_: TriplaneMaterialField, resolution: int = 512,
@@ -131,7 +134,7 @@ def asset_from_textures(name: str, mesh: Mesh, material_texture: torch.Tensor, b
                         pbr: PBRFitConfig | None = None, provenance: dict[str, Any] | None = None,
                         metrics: dict[str, float] | None = None,
                         timings: dict[str, float] | None = None) -> MaterialAsset:
-    """A UV-texture asset: `mesh` must carry the uvs the texture [R, R, 9] was made for (e.g. TTO's UV ablation)."""
+    """A UV-texture asset: `mesh` must carry the uvs the texture [R, R, 3 + K] was made for (e.g. TTO's UV ablation)."""
     if mesh.uvs is None:
         raise ValueError("a UV-texture asset needs a mesh with uvs")
     timings = dict(timings or {})

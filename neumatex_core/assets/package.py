@@ -5,7 +5,8 @@
     mesh.obj                          object-space mesh with xatlas uvs and normals (float32-exact)
     tensors.safetensors               triplane planes [3, C, R, R] and decoder weights (triplane assets)
     textures/base_color.exr           rho_d [R, R, 3], linear float32
-    textures/latent.exr               latent [R, R, 6] in [-1, 1], float32, channels l0..l5
+    textures/latent.exr               latent [R, R, K] in [-1, 1], float32, channels l0..l5 (K: the basis's
+                                      latent size, 6 in the paper's basis; l00..l15 for 16)
     textures/texel_mask.png           texels on the surface (255) vs dilation padding (0)
     textures/pbr_base_color.png       PBR fallback base colour, sRGB 8-bit
     textures/pbr_metallic_roughness.png  glTF layout: G roughness, B metallic (linear 8-bit)
@@ -71,7 +72,6 @@ PBR_BASE = "textures/pbr_base_color.png"
 PBR_MR = "textures/pbr_metallic_roughness.png"
 GLB = "fallback.glb"
 USD = "fallback.usda"
-LATENT_CHANNELS = ("l0", "l1", "l2", "l3", "l4", "l5")
 _STORED = (".png", ".exr", ".glb")  # already compressed: stored as is in zips
 
 
@@ -140,12 +140,19 @@ def write_pbr_textures(asset: MaterialAsset, root: Path) -> list[Path]:
     return [root / PBR_BASE, root / PBR_MR]
 
 
+def latent_channel_names(k: int) -> tuple[str, ...]:
+    """latent.exr's channel names for K latents: l0..l5 for 6, l00..l15 for 16. EXR keeps channels sorted by name,
+    so the digits are zero-padded to one width to keep the latent's order."""
+    width = len(str(k - 1))
+    return tuple(f"l{i:0{width}d}" for i in range(k))
+
+
 def write_textures(asset: MaterialAsset, root: Path) -> list[Path]:
     """Every texture file (EXR + PNG) of the package layout under root."""
     (root / "textures").mkdir(parents=True, exist_ok=True)
     mat = asset.material_texture.detach().cpu().numpy()
     write_exr(root / BASE_COLOR, mat[..., :3], ("R", "G", "B"))
-    write_exr(root / LATENT, mat[..., 3:], LATENT_CHANNELS)
+    write_exr(root / LATENT, mat[..., 3:], latent_channel_names(asset.basis.arch.latent_dim))
     (root / MASK).write_bytes(png_bytes(asset.texel_mask.cpu().numpy().astype(np.uint8) * 255))
     return [root / BASE_COLOR, root / LATENT, root / MASK, *write_pbr_textures(asset, root)]
 
@@ -325,7 +332,7 @@ def _read_root(root: Path, label: str, basis: NeuralBasis) -> MaterialAsset:
     tex = manifest.textures
     r = tex.resolution
     rho = read_exr(root / tex.base_color, f"{label}/{tex.base_color}", 3, r)
-    lat = read_exr(root / tex.latent, f"{label}/{tex.latent}", 6, r)
+    lat = read_exr(root / tex.latent, f"{label}/{tex.latent}", basis.arch.latent_dim, r)
     material = torch.from_numpy(np.concatenate([rho, lat], axis=-1))
     mask = torch.from_numpy(read_png8(root / tex.mask, f"{label}/{tex.mask}")[..., 0] > 127)
     base = read_png8(root / tex.pbr_base_color, f"{label}/{tex.pbr_base_color}")

@@ -227,7 +227,8 @@ def _grid_search(target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albed
 
 
 def neural_targets(basis: NeuralBasis, values: torch.Tensor) -> torch.Tensor:
-    """y_neural = f cos_i [M, K, 3] of neural materials values [M, 9] (rho_d, latent) at the fit's K pairs."""
+    """y_neural = f cos_i [M, K, 3] of neural materials values [M, 3 + L] (rho_d, latent [L]) at the fit's K
+    pairs."""
     wi, wo = (x.to(values.device) for x in fit_directions())
     m, k = values.shape[0], wi.shape[0]
     with torch.no_grad():
@@ -237,7 +238,8 @@ def neural_targets(basis: NeuralBasis, values: torch.Tensor) -> torch.Tensor:
 
 
 def neural_albedo(basis: NeuralBasis, values: torch.Tensor) -> torch.Tensor:
-    """Directional albedo [M, V, 3] (T rho_d + R, `NeuralMaterial.albedo`) of materials [M, 9] at the fit's views."""
+    """Directional albedo [M, V, 3] (T rho_d + R, `NeuralMaterial.albedo`) of materials [M, 3 + L] at the fit's
+    views."""
     wo = view_directions().to(values.device)
     m, v = values.shape[0], wo.shape[0]
     with torch.no_grad():
@@ -290,14 +292,14 @@ def fit_targets(target: torch.Tensor, albedo: torch.Tensor | None = None,
 def fit_pbr(basis: NeuralBasis, material: torch.Tensor, mask: torch.Tensor | None = None,
             config: PBRFitConfig | None = None) -> tuple[torch.Tensor, float]:
     """(PBR texture [H, W, 5] (base colour, roughness, metallic) quantised to 8 bits, mean log loss over the texels
-    in mask [H, W] (all if None)) fitted to a neural material texture [H, W, 9] (rho_d, latent)."""
+    in mask [H, W] (all if None)) fitted to a neural material texture [H, W, 3 + L] (rho_d, latent [L])."""
     cfg = config or PBRFitConfig()
-    h, w, _ = material.shape
-    flat = material.reshape(-1, 9).detach().float()
+    h, w, c = material.shape
+    flat = material.reshape(-1, c).detach().float()
     keys = torch.cat([torch.round(flat[:, :3] * 255), torch.round((flat[:, 3:] + 1) * 127.5)], dim=-1)
     uniq, inverse = np.unique(keys.cpu().numpy().astype(np.int16), axis=0, return_inverse=True)
     inverse_t = torch.from_numpy(inverse.reshape(-1)).to(material.device)
-    sums = torch.zeros(len(uniq), 9, device=material.device).index_add_(0, inverse_t, flat)
+    sums = torch.zeros(len(uniq), c, device=material.device).index_add_(0, inverse_t, flat)
     counts = torch.zeros(len(uniq), device=material.device).index_add_(0, inverse_t, torch.ones_like(flat[:, 0]))
     values = sums / counts.unsqueeze(-1)
     params, losses = [], []

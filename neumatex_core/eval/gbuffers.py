@@ -1,9 +1,11 @@
 """Ground-truth G-buffers of a synthetic object (written by `neumatex synth`) and the G-buffer metrics.
 
 `ground_truth(object_dir, views)` reads the preset views' position / base colour / latent buffers at their covered
-pixels; `truth_lookup` turns them into a function of surface points (nearest stored pixel: what reg="oracle"
-needs); `gbuffer_psnr` gives PSNR_BaseColor (rho_d) and PSNR_Latents ((l + 1) / 2) of any G-buffer function over
-those pixels (docs/architecture.md section 2: covered pixels only).
+pixels (with a `basis` other than the one the object was made in, the latents in that basis: the encoding of each
+pixel's region's layered parameters from material.json, the region told by the stored latent); `truth_lookup`
+turns them into a function of surface points (nearest stored pixel: what reg="oracle" needs); `gbuffer_psnr` gives
+PSNR_BaseColor (rho_d) and PSNR_Latents ((l + 1) / 2) of any G-buffer function over those pixels
+(docs/architecture.md section 2: covered pixels only).
 """
 
 from __future__ import annotations
@@ -18,13 +20,15 @@ import numpy as np
 import torch
 
 from neumatex_core.imageio import read_image
+from neumatex_core.materials.layered import PARAMETER_NAMES
+from neumatex_core.materials.neural_basis import BasisError, NeuralBasis, load_basis
 
 GBufferFn = Callable[[torch.Tensor], torch.Tensor]  # points [N, 3] -> (rho_d, latent) [N, 9]
 
 
 @dataclass
 class GroundTruth:
-    """points [M, 3] (covered pixel centres of the chosen views, world frame), values [M, 9] (rho_d, latent),
+    """points [M, 3] (covered pixel centres of the chosen views, world frame), values [M, 3 + K] (rho_d, latent),
     view [M] index of the view each pixel belongs to."""
 
     points: torch.Tensor
@@ -32,8 +36,12 @@ class GroundTruth:
     view: torch.Tensor
 
 
-def ground_truth(object_dir: str | Path, views: Sequence[int] | None = None) -> GroundTruth:
-    """The stored ground truth of `views` (default: all frames with G-buffers) of a synthetic object folder.
+def ground_truth(object_dir: str | Path, views: Sequence[int] | None = None,
+                 basis: NeuralBasis | None = None) -> GroundTruth:
+    """The stored ground truth of `views` (default: all frames with G-buffers) of a synthetic object folder; with
+    `basis` other than the object's (material.json's basis_id), its latents are `basis.encode` of each pixel's region's
+    layered parameters, values [M, 3 + K]: a region's stored latent is the object's basis's encoding of its
+    parameters (synth/materials.py), so the nearest of those encodings tells each pixel's region.
     Raises ValueError naming the file when the folder has no G-buffers (not a synthetic object)."""
     root = Path(object_dir)
     transforms = root / "transforms.json"
@@ -42,6 +50,7 @@ def ground_truth(object_dir: str | Path, views: Sequence[int] | None = None) -> 
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{transforms}: cannot read the frames ({exc})") from None
     picks = list(range(len(frames))) if views is None else list(views)
+    recode = _region_encodings(root, basis) if basis is not None else None
     pts, vals, idx = [], [], []
     for v in picks:
         g = frames[v].get("gbuffers")
@@ -49,10 +58,31 @@ def ground_truth(object_dir: str | Path, views: Sequence[int] | None = None) -> 
             raise ValueError(f"{transforms}: frame {v} has no ground-truth G-buffers (not a synthetic object)")
         mask = read_image(root / frames[v]["mask_path"])[:, :, 0] > 0.5
         pts.append(read_image(root / g["position"])[mask])
-        vals.append(np.concatenate([read_image(root / g["basecolor"])[mask], read_image(root / g["latent"])[mask]], 1))
+        latent = read_image(root / g["latent"])[mask]
+        if recode is not None:
+            own, other = recode
+            latent = other[torch.cdist(torch.from_numpy(latent), own).argmin(1).numpy()]
+        vals.append(np.concatenate([read_image(root / g["basecolor"])[mask], latent], 1))
         idx.append(np.full(int(mask.sum()), v))
     return GroundTruth(torch.from_numpy(np.concatenate(pts)).float(), torch.from_numpy(np.concatenate(vals)).float(),
                        torch.from_numpy(np.concatenate(idx)))  # fmt: skip
+
+
+def _region_encodings(root: Path, basis: NeuralBasis) -> tuple[torch.Tensor, np.ndarray] | None:
+    """(the regions' latents in the object's basis [regions, 6], in `basis` [regions, K] float32): their layered
+    parameters (material.json) encoded by each; None where `basis` is the object's (its stored latents are those)."""
+    path = root / "material.json"
+    try:
+        material = json.loads(path.read_text())
+        if material["basis_id"] == basis.basis_id:
+            return None
+        params = torch.tensor([[float(r["params"][name]) for name in PARAMETER_NAMES] for r in material["regions"]])
+        own = load_basis(basis_id=material["basis_id"])
+    except (OSError, ValueError, KeyError, TypeError, BasisError) as exc:
+        raise ValueError(f"{path}: cannot encode the regions' layered parameters ({exc})") from None
+    with torch.no_grad():
+        other = basis.encode(params.to(next(basis.parameters()).device)).cpu().numpy().astype(np.float32)
+        return own.encode(params), other
 
 
 def truth_lookup(gt: GroundTruth, chunk: int = 4096) -> GBufferFn:

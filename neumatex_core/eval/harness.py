@@ -65,13 +65,13 @@ def _render_psnr(object_dir: Path, field: MaterialField, views: Sequence[int], s
 
 
 def pbr_base_colour(values: torch.Tensor, basis: NeuralBasis) -> torch.Tensor:
-    """[N, 9]: the Lambertian base colour rho_d of PBR points (`values` [N, 5]: base colour, roughness, metallic) and
-    NaN latents. The truth's G-buffer holds rho_d, the colour under the layers (near black under a metal), while a
-    PBR base colour is the specular colour F0 where metallic is 1; so a PBR point is scored on its rho_d in the
-    layered model (materials/pbr_to_neural.py: b (1 - m) over the specular layer's transmission), as the neural
-    TTO's start reads it."""
+    """[N, 3 + K]: the Lambertian base colour rho_d of PBR points (`values` [N, 5]: base colour, roughness, metallic)
+    and NaN latents (K: the basis's latent size). The truth's G-buffer holds rho_d, the colour under the layers (near
+    black under a metal), while a PBR base colour is the specular colour F0 where metallic is 1; so a PBR point is
+    scored on its rho_d in the layered model (materials/pbr_to_neural.py: b (1 - m) over the specular layer's
+    transmission), as the neural TTO's start reads it."""
     rho_d, _ = pbr_to_neural(basis, values[:, :3], values[:, 3], values[:, 4])
-    return torch.cat([rho_d, torch.full((values.shape[0], 6), math.nan, device=values.device)], -1)
+    return torch.cat([rho_d, torch.full((values.shape[0], basis.arch.latent_dim), math.nan, device=values.device)], -1)
 
 
 def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: GroundTruth, uv_mesh: Any,
@@ -153,8 +153,8 @@ def evaluate_variant(object_dir: str | Path, work: str | Path, variant: str, con
     scores = gbuffer_psnr(gfn, gt)
     result_basis = getattr(field, "basis", None)
     if result_basis is not None and result_basis.basis_id != basis.basis_id:
-        scores["psnr_latents"] = float("nan")  # another basis's latents (TTOConfig.basis, alternative_basis) do not
-        # compare with the truth's, which are the default basis's
+        # another basis's latents (TTOConfig.basis, alternative_basis) against the truth's in that basis
+        scores["psnr_latents"] = gbuffer_psnr(gfn, ground_truth(object_dir, basis=result_basis))["psnr_latents"]
     path = _render_psnr(object_dir, field, render_views, render_spp, render_bounces, config.seed, scene_mesh)
     out = {**scores, "psnr_pathtrace": path, "tto_minutes": seconds / 60, "tto_cpu_minutes": cpu / 60, **choice}
     if relight_views:

@@ -5,17 +5,23 @@ triplane features into material G-buffers (docs/architecture.md sections 1, 5).
 - `MaterialDecoder`, `UncertaintyDecoder`, `PBRDecoder` (decoders.py): features -> (rho_d, latent),
   9 log-variances, PBR (base colour, roughness, metallic);
 - `TriplaneMaterialField` (neural_field.py): triplane + material decoder + neural basis -> NeuralMaterial;
-- `UVTextureField`, `PBRTextureField` (uv_textures.py): per-hit UV lookups of [H, W, 9] / [H, W, 5] textures;
+- `UVTextureField`, `PBRTextureField` (uv_textures.py): per-hit UV lookups of [H, W, 3 + K] / [H, W, 5]
+  textures (K the basis's latent size);
 - `fit_triplane` (fit.py): distil a known per-point material into a triplane (test objects).
 """
 
 from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id
 from neumatex_core.fields.neural_field import TriplaneMaterialField
 from neumatex_core.fields.triplane import Triplane
-from neumatex_core.fields.uv_textures import MATERIAL_CHANNELS, PBR_CHANNELS, PBRTextureField, UVTextureField, sample_uv
+from neumatex_core.fields.uv_textures import (
+    PBR_CHANNELS,
+    PBRTextureField,
+    UVTextureField,
+    material_channels,
+    sample_uv,
+)
 
 __all__ = [
-    "MATERIAL_CHANNELS",
     "PBR_CHANNELS",
     "MaterialDecoder",
     "PBRDecoder",
@@ -24,6 +30,7 @@ __all__ = [
     "TriplaneMaterialField",
     "UVTextureField",
     "UncertaintyDecoder",
+    "material_channels",
     "module_id",
     "sample_uv",
 ]

@@ -1,8 +1,9 @@
 """Distilling a known per-point material into a triplane field (Adam on the G-buffer MSE).
 
 Used to make test and benchmark objects whose triplane encodes a known material (until the LMRM predicts
-triplanes), and usable as an initialisation. `target(points [N, 3]) -> (rho_d [N, 3], latent [N, 6])` is any
-function of the surface points; `points` are samples of the surface (e.g. `Mesh` area samples).
+triplanes), and usable as an initialisation. `target(points [N, 3]) -> (rho_d [N, 3], latent [N, K])` (K: the
+basis's latent size) is any function of the surface points; `points` are samples of the surface (e.g. `Mesh` area
+samples).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ def fit_triplane(points: torch.Tensor, target: Target, basis: NeuralBasis, chann
     device = points.device
     triplane = Triplane(channels, resolution, init_std=0.1, generator=g).to(device)
     torch.manual_seed(seed)
-    decoder = MaterialDecoder(triplane.feature_dim).to(device)
+    decoder = MaterialDecoder(triplane.feature_dim, latent_dim=basis.arch.latent_dim).to(device)
     with torch.no_grad():
         rho_t, lat_t = target(points)
         want = torch.cat([rho_t, (lat_t + 1) / 2], dim=-1)

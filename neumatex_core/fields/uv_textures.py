@@ -5,7 +5,8 @@ so texel (i, j) has its centre at u = (j + 0.5) / W, v = 1 - (i + 0.5) / H. Look
 border texels. The mesh must carry per-vertex uvs (`Mesh.uvs`, e.g. from `assets.uv_unwrap`); the renderer
 interpolates them into `SurfaceInteraction.uv`.
 
-- `UVTextureField`: texture [H, W, 9] = (rho_d [3] in [0, 1], latent [6] in [-1, 1]) -> NeuralMaterial;
+- `UVTextureField`: texture [H, W, 3 + K] = (rho_d [3] in [0, 1], latent [K] in [-1, 1]) -> NeuralMaterial, K the
+  basis's latent size (`material_channels`: 9 in the paper's basis);
 - `PBRTextureField`: texture [H, W, 5] = (base colour [3], roughness, metallic) -> PBRMaterial.
 
 Gradients flow to the texture tensors (TTO's UV-texture ablation optimises them).
@@ -21,8 +22,12 @@ from neumatex_core.materials.field import MaterialField
 from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial
 from neumatex_core.materials.pbr import DIELECTRIC_F0, PBRMaterial
 
-MATERIAL_CHANNELS = 9  # rho_d (3) + latent (6)
 PBR_CHANNELS = 5  # base colour (3) + roughness + metallic
+
+
+def material_channels(basis: NeuralBasis) -> int:
+    """Channels of a neural material texture in `basis`: rho_d (3) + its latent size."""
+    return 3 + basis.arch.latent_dim
 
 
 def sample_uv(texture: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -46,16 +51,16 @@ def _check(texture: torch.Tensor, channels: int, what: str) -> torch.Tensor:
 
 
 class UVTextureField(MaterialField):
-    """Neural material from a [H, W, 9] texture (rho_d, latent) and the frozen basis."""
+    """Neural material from a [H, W, 3 + K] texture (rho_d, latent) and the frozen basis (latent size K)."""
 
     kind = "uv_textures"
 
     def __init__(self, texture: torch.Tensor, basis: NeuralBasis) -> None:
-        self.texture = _check(texture, MATERIAL_CHANNELS, "material")
+        self.texture = _check(texture, material_channels(basis), "material")
         self.basis = basis
 
     def gbuffer_uv(self, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(rho_d [N, 3], latent [N, 6]) at uv [N, 2]."""
+        """(rho_d [N, 3], latent [N, K]) at uv [N, 2]."""
         values = sample_uv(self.texture, uv)
         return values[:, :3], values[:, 3:]
 

@@ -27,7 +27,7 @@ from neumatex_core.render.views import sphere_camera
 
 
 class UniformNeural(MaterialField):
-    """One neural material everywhere: base_color [3] rho_d, latent [6] (tensors may require grad)."""
+    """One neural material everywhere: base_color [3] rho_d, latent [K] (tensors may require grad)."""
 
     def __init__(self, basis: NeuralBasis, base_color: torch.Tensor, latent: torch.Tensor) -> None:
         self.basis, self.base_color, self.latent = basis, base_color, latent

@@ -32,7 +32,7 @@ from neumatex_core.atomic import replaced_atomically
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.fields.decoders import MaterialDecoder
 from neumatex_core.fields.triplane import Triplane
-from neumatex_core.fields.uv_textures import MATERIAL_CHANNELS, PBR_CHANNELS
+from neumatex_core.fields.uv_textures import PBR_CHANNELS, material_channels
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRMPrediction
@@ -189,7 +189,8 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
         if config.material == "neural":
             init_pred = LMRMPrediction(init_field, anchor_pred.material_decoder, anchor_pred.uncertainty_decoder,
                                        anchor_pred.pbr_decoder)  # fmt: skip
-            tex = bake(samples, lambda p: _neural_gbuffer(init_pred, p)[0], MATERIAL_CHANNELS, device=device)
+            tex = bake(samples, lambda p: _neural_gbuffer(init_pred, p)[0], material_channels(basis),
+                       device=device)
             params = NeuralUV(tex, basis)
         else:
             init_pred = LMRMPrediction(init_field, anchor_pred.material_decoder, anchor_pred.uncertainty_decoder,
@@ -198,7 +199,7 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
             params = PBRUV(tex)
         params.project()
     elif config.material == "neural":
-        params = NeuralTriplane(start, _decoder_copy(_decoder_for(anchor_pred.material_decoder, basis), config), basis)
+        params = NeuralTriplane(start, _decoder_copy(decoder_for(anchor_pred.material_decoder, basis), config), basis)
     else:
         params = PBRTriplane(start, _decoder_copy(anchor_pred.pbr_decoder, config))
     anchor = None
@@ -222,10 +223,10 @@ def build_problem(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos:
     return TTOProblem(scene_mesh, envmap, photos, tonemap, params, anchor, device, exposure)
 
 
-def _decoder_for(decoder: MaterialDecoder, basis: NeuralBasis) -> MaterialDecoder:
+def decoder_for(decoder: MaterialDecoder, basis: NeuralBasis) -> MaterialDecoder:
     """The LMRM's material decoder, or where `basis` has another latent size (TTOConfig.basis) its copy of that
     size (`MaterialDecoder.with_latent_dim`: the same copy at every call, since the start's planes are fitted through
-    one and read through another)."""
+    one and read through another, and the export stage reads the result through it)."""
     size = basis.arch.latent_dim  # the copy is frozen like the decoder it is made from
     return decoder if size == decoder.latent_dim else decoder.with_latent_dim(size)
 

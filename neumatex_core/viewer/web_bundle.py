@@ -5,8 +5,10 @@
     bundle.json          names, sizes, byte layouts of the files below, the basis id, the default map
     mesh.bin             triangle soup, 11 floats per corner: position, shading normal, uv, face normal (the
                          geometric normal of `Mesh.face_normals`, as the path tracer uses it)
-    material.bin         [R, R, 16] texel rows from the top (v = 1), four RGBA textures: (rho_d, l0), (l1..l4),
-                         (l5, PBR base colour linear), (PBR roughness, metallic, texel mask, 0)
+    material.bin         [R, R, C] texel rows from the top (v = 1), C / 4 RGBA textures of the channels rho_d, the
+                         basis's K latents, PBR base colour (linear), PBR roughness, metallic, texel mask, zeros to a
+                         multiple of 4 (C = 16 for the paper's K = 6: (rho_d, l0), (l1..l4), (l5, PBR base colour),
+                         (roughness, metallic, mask, 0))
     basis.bin            the decoder and auxiliary MLPs of the asset's basis as std140 uniform blocks: per layer
                          its weights as 4x4 column-major blocks (out block i, in block j at i * n_in4 + j), then
                          every layer's bias (zero padded to a multiple of 4)
@@ -99,13 +101,15 @@ def mesh_soup(asset: MaterialAsset) -> np.ndarray:
 
 
 def material_texels(asset: MaterialAsset) -> np.ndarray:
-    """[R, R, 16] float32: the neural textures, the PBR fallback (decoded as the renderer reads it), the mask."""
+    """[R, R, C] float32: the neural textures (3 + K), the PBR fallback (5, decoded as the renderer reads it), the
+    mask, zeros to make C a multiple of 4."""
     mat = asset.material_texture.detach().float().cpu().numpy()
     pbr = asset.pbr_texture.detach().float().cpu().numpy()
     if pbr.shape[:2] != mat.shape[:2]:
         raise ValueError(f"PBR textures {pbr.shape[:2]} and neural textures {mat.shape[:2]} differ in size")
     mask = asset.texel_mask.detach().float().cpu().numpy()[:, :, None]
-    zero = np.zeros_like(mask)
+    used = mat.shape[2] + pbr.shape[2] + 1
+    zero = np.zeros((*mask.shape[:2], -used % 4), np.float32)
     return np.ascontiguousarray(np.concatenate([mat, pbr, mask, zero], axis=2), dtype=np.float32)
 
 
@@ -190,7 +194,7 @@ def write_bundle(asset: MaterialAsset, out: str | Path, envmaps: list[EnvSource]
         "name": asset.name,
         "mesh": {**_write_bin(out / "mesh.bin", soup), "corners": int(soup.shape[0]), "floats_per_corner": 11},
         "material": {**_write_bin(out / "material.bin", texels), "resolution": int(texels.shape[0]),
-                     "channels": 16},
+                     "channels": int(texels.shape[2])},
         "basis": {**_write_bin(out / "basis.bin", basis_data), **layout},
         "envmaps": env_entries,
         "default_envmap": default,

@@ -181,13 +181,33 @@ void main() {
 
   const WEIGHT_WIDTH = 2048;  // texels per row of the weight texture (a multiple of 4: blocks never straddle rows)
   let BASIS = null;
-  function meshFragmentSource(basis) {
+  // GLSL for a list of scalar expressions as the vec4 arguments of a network's first layer (zero padded).
+  function blocks(scalars) {
+    const out = [];
+    for (let i = 0; i < scalars.length; i += 4) {
+      const part = scalars.slice(i, i + 4);
+      while (part.length < 4) part.push("0.0");
+      out.push(`vec4(${part.join(", ")})`);
+    }
+    return out.join(", ");
+  }
+  function meshFragmentSource(basis, material) {
     const dec = basis.networks.decoder, aux = basis.networks.aux, smp = basis.networks.sampler;
-    if (basis.latent_dim !== 6 || dec[0].n_in !== 17 || aux[0].n_in !== 9) fail("this viewer needs a basis with 6 latents");
+    const K = basis.latent_dim, nTex = material.channels / 4;
+    // material.bin's channels (web_bundle.material_texels): rho_d, the K latents, PBR base colour, roughness,
+    // metallic, texel mask, zero padding; texture t holds channels 4t..4t+3.
+    if (material.channels !== 4 * Math.ceil((K + 9) / 4)) fail("material channels do not fit the basis's latent size");
+    if (dec[0].n_in !== K + 11 || aux[0].n_in !== K + 3 || smp[0].n_in !== K + 3) fail("unexpected basis inputs");
     if (dec[dec.length - 1].n_out !== 3 || aux[aux.length - 1].n_out !== 4 || smp[smp.length - 1].n_out !== 5) {
       fail("unexpected basis outputs");
     }
     BASIS = basis;
+    const ch = (c) => `m[${c >> 2}].${"xyzw"[c & 3]}`;
+    const latents = Array.from({ length: K }, (_, i) => `gLat[${i}]`);
+    const decIn = blocks([...latents, "wi.x", "wi.y", "wi.z", "wo.x", "wo.y", "wo.z", "h.x", "h.y", "h.z", "dot(h, wo)",
+      "log(sin2H + 1e-6) / 8.0 + 1.0"]);   // neural_basis.direction_features
+    const woIn = blocks([...latents, "woL.x", "woL.y", "woL.z"]);
+    const texIdx = Array.from({ length: nTex }, (_, t) => t);
     const decSrc = mlpSource("dec", dec);
     const auxSrc = mlpSource("aux", aux);
     const smpSrc = mlpSource("smp", smp);
@@ -200,10 +220,7 @@ mat4 basisBlock(int m) {
   return mat4(texelFetch(uBasis, p, 0), texelFetch(uBasis, p + ivec2(1, 0), 0), texelFetch(uBasis, p + ivec2(2, 0), 0),
               texelFetch(uBasis, p + ivec2(3, 0), 0));
 }
-uniform sampler2D uMat0;   // rho_d, l0
-uniform sampler2D uMat1;   // l1..l4
-uniform sampler2D uMat2;   // l5, PBR base colour
-uniform sampler2D uMat3;   // PBR roughness, metallic, mask
+${texIdx.map((t) => `uniform sampler2D uMat${t};`).join("\n")}
 uniform int uMatSize;
 uniform int uMode;         // 0 neural, 1 PBR, 2 base colour (Lambert)
 uniform vec3 uCamPos;
@@ -217,7 +234,7 @@ ${auxSrc}
 ${smpSrc}
 // fields/uv_textures.sample_uv: bilinear, align_corners=False, border padding, texel row 0 at v = 1.
 vec4 tex4(sampler2D t, ivec2 p) { return texelFetch(t, p, 0); }
-void lookup(vec2 uv, out vec4 m0, out vec4 m1, out vec4 m2, out vec4 m3) {
+void lookup(vec2 uv, out vec4 m[${nTex}]) {
   float n = float(uMatSize);
   float x = clamp(uv.x * n - 0.5, 0.0, n - 1.0);
   float y = clamp((1.0 - uv.y) * n - 0.5, 0.0, n - 1.0);
@@ -226,10 +243,8 @@ void lookup(vec2 uv, out vec4 m0, out vec4 m1, out vec4 m2, out vec4 m3) {
   float fx = x - float(x0), fy = y - float(y0);
   ivec2 p00 = ivec2(x0, y0), p10 = ivec2(x1, y0), p01 = ivec2(x0, y1), p11 = ivec2(x1, y1);
   float w00 = (1.0 - fx) * (1.0 - fy), w10 = fx * (1.0 - fy), w01 = (1.0 - fx) * fy, w11 = fx * fy;
-  m0 = tex4(uMat0, p00) * w00 + tex4(uMat0, p10) * w10 + tex4(uMat0, p01) * w01 + tex4(uMat0, p11) * w11;
-  m1 = tex4(uMat1, p00) * w00 + tex4(uMat1, p10) * w10 + tex4(uMat1, p01) * w01 + tex4(uMat1, p11) * w11;
-  m2 = tex4(uMat2, p00) * w00 + tex4(uMat2, p10) * w10 + tex4(uMat2, p01) * w01 + tex4(uMat2, p11) * w11;
-  m3 = tex4(uMat3, p00) * w00 + tex4(uMat3, p10) * w10 + tex4(uMat3, p01) * w01 + tex4(uMat3, p11) * w11;
+${texIdx.map((t) => `  m[${t}] = tex4(uMat${t}, p00) * w00 + tex4(uMat${t}, p10) * w10 + tex4(uMat${t}, p01) * w01 + ` +
+  `tex4(uMat${t}, p11) * w11;`).join("\n")}
 }
 // microfacet.py: GGX D, separable Smith G1, UE4 Schlick.
 float ggxD(float cosH, float alpha) {
@@ -290,7 +305,7 @@ float envPdf(vec3 d) {
   return sinTheta > 1e-7 ? p / max(sinTheta, 1e-7) : 0.0;
 }
 
-vec4 gL0, gL1;   // the latent at this pixel, as the networks' first input blocks expect it (l0..l3), (l4, l5, ., .)
+float gLat[${K}];   // the latent at this pixel
 vec3 gRho, gT;   // rho_d and T(wo)
 // NeuralMaterial.eval: T rho_d / pi + f_neu, zero below the surface.
 vec3 neuralEval(vec3 wi, vec3 wo) {
@@ -298,8 +313,7 @@ vec3 neuralEval(vec3 wi, vec3 wo) {
   vec3 h = wi + wo; h = h / max(length(h), 1e-12);   // neural_basis.direction_features
   float sin2H = max(1.0 - h.z * h.z, 0.0);
   vec4 y[1];
-  decEval(gL0, vec4(gL1.xy, wi.xy), vec4(wi.z, wo), vec4(h, dot(h, wo)),
-          vec4(log(sin2H + 1e-6) / 8.0 + 1.0, 0.0, 0.0, 0.0), y);
+  decEval(${decIn}, y);
   return gT * gRho / PI + exp(min(y[0].rgb, 12.0));
 }
 // NeuralMaterial.mixture / _pdf: lobe probabilities (cosine, GGX 1, GGX 2) and the two GGX widths.
@@ -323,20 +337,21 @@ void main() {
   vec3 t = vec3(1.0 + sgn * ns.x * ns.x * a, sgn * b, -sgn * ns.x);
   vec3 bt = vec3(b, sgn + ns.y * ns.y * a, -ns.y);
   vec3 woL = vec3(dot(wo, t), dot(wo, bt), dot(wo, ns));
-  vec4 m0, m1, m2, m3;
-  lookup(vUv, m0, m1, m2, m3);
-  gRho = m0.rgb;
-  gL0 = vec4(m0.a, m1.rgb);
-  gL1 = vec4(m1.a, m2.r, 0.0, 0.0);
+  vec4 m[${nTex}];
+  lookup(vUv, m);
+  gRho = vec3(${ch(0)}, ${ch(1)}, ${ch(2)});
+${latents.map((l, i) => `  ${l} = ${ch(3 + i)};`).join("\n")}
+  vec3 pbrBase = vec3(${ch(K + 3)}, ${ch(K + 4)}, ${ch(K + 5)});
+  float pbrRough = ${ch(K + 6)}, pbrMetal = ${ch(K + 7)};
   vec3 probs = vec3(1.0, 0.0, 0.0);
   vec2 alphas = vec2(1.0);
   if (uMode == 0) {
     vec4 y[1];
-    auxEval(gL0, vec4(gL1.xy, woL.xy), vec4(woL.z, 0.0, 0.0, 0.0), y);
+    auxEval(${woIn}, y);
     vec4 tr = 1.0 / (1.0 + exp(-y[0]));
     gT = tr.rgb;
     vec4 z[2];
-    smpEval(gL0, vec4(gL1.xy, woL.xy), vec4(woL.z, 0.0, 0.0, 0.0), z);
+    smpEval(${woIn}, z);
     vec3 e = exp(z[0].xyz - max(z[0].x, max(z[0].y, z[0].z)));
     vec3 lobes = e / (e.x + e.y + e.z);
     alphas = 1e-3 + (1.0 - 1e-3) / (1.0 + exp(-vec2(z[0].w, z[1].x)));
@@ -362,7 +377,7 @@ void main() {
         float pb = mixturePdf(wi, woL, probs, alphas);
         w = pdf / (pdf + pb);
       } else if (uMode == 1) {
-        f = pbrEval(wi, woL, m2.gba, m3.r, m3.g);
+        f = pbrEval(wi, woL, pbrBase, pbrRough, pbrMetal);
       } else {
         f = woL.z > 0.0 ? gRho / PI : vec3(0.0);
       }
@@ -578,9 +593,9 @@ void main() {
       gl.bindTexture(gl.TEXTURE_2D, t);
       gl.uniform1i(p.loc[`uMat${i}`], 3 + i);
     });
-    gl.activeTexture(gl.TEXTURE7);
+    gl.activeTexture(gl.TEXTURE3 + matTex.length);
     gl.bindTexture(gl.TEXTURE_2D, basisTex);
-    gl.uniform1i(p.loc.uBasis, 7);
+    gl.uniform1i(p.loc.uBasis, 3 + matTex.length);
     gl.uniform1i(p.loc.uMatSize, bundle.material.resolution);
     gl.uniform1i(p.loc.uMode, { neural: 0, pbr: 1, base_color: 2 }[state.mode] ?? 0);
     gl.uniform3f(p.loc.uCamPos, vp.pos[0], vp.pos[1], vp.pos[2]);
@@ -647,18 +662,18 @@ void main() {
       gl.vertexAttribPointer(loc, n, gl.FLOAT, false, 44, off * 4);
     });
     gl.bindVertexArray(null);
-    // material textures: [R, R, 16] -> four RGBA32F textures
-    const res = bundle.material.resolution;
-    matTex = [0, 1, 2, 3].map((k) => {
+    // material textures: [R, R, C] -> C / 4 RGBA32F textures
+    const res = bundle.material.resolution, nc = bundle.material.channels;
+    matTex = Array.from({ length: nc / 4 }, (_, k) => {
       const part = new Float32Array(res * res * 4);
-      for (let i = 0; i < res * res; i++) for (let c = 0; c < 4; c++) part[i * 4 + c] = mat[i * 16 + k * 4 + c];
+      for (let i = 0; i < res * res; i++) for (let c = 0; c < 4; c++) part[i * 4 + c] = mat[i * nc + k * 4 + c];
       return floatTexture(res, res, 4, part);
     });
     // programs and the basis's uniform blocks
     const b = bundle.basis;
     progs = {
       background: program(VS_QUAD, PRELUDE + COMMON + FS_BACKGROUND),
-      mesh: program(VS_MESH, PRELUDE + COMMON + meshFragmentSource(b)),
+      mesh: program(VS_MESH, PRELUDE + COMMON + meshFragmentSource(b, bundle.material)),
       display: program(VS_QUAD, PRELUDE + FS_DISPLAY),
     };
     const texels = Math.ceil(basis.length / 4);
