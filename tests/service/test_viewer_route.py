@@ -44,7 +44,9 @@ def test_viewer_token_opens_the_page_and_its_bundle(service: Service, done: dict
         assert np.abs(np.linalg.norm(corners[:, 3:6], axis=1) - 1).max() < 1e-3  # unit shading normals
         res = info["material"]["resolution"]
         material = browser.get(f"{base}/{info['material']['file']}")
-        assert len(material.content) == res * res * 16 * 4
+        channels = info["material"]["channels"]  # rho_d, the basis's latents, PBR, mask, zeros: whole RGBA texels
+        assert channels == 4 * -(-(3 + info["basis"]["latent_dim"] + 6) // 4)
+        assert len(material.content) == res * res * channels * 4
         assert info["basis"]["basis_id"] == c_manifest_basis(service, jid)
         env = info["envmaps"][0]
         assert browser.get(f"{base}/{env['file']}").status_code == 200
