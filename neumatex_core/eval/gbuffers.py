@@ -23,7 +23,7 @@ from neumatex_core.imageio import read_image
 from neumatex_core.materials.layered import PARAMETER_NAMES
 from neumatex_core.materials.neural_basis import BasisError, NeuralBasis, load_basis
 
-GBufferFn = Callable[[torch.Tensor], torch.Tensor]  # points [N, 3] -> (rho_d, latent) [N, 9]
+GBufferFn = Callable[[torch.Tensor], torch.Tensor]  # points [N, 3] -> (rho_d, latent) [N, 3 + K]
 
 
 @dataclass
@@ -86,7 +86,7 @@ def _region_encodings(root: Path, basis: NeuralBasis) -> tuple[torch.Tensor, np.
 
 
 def truth_lookup(gt: GroundTruth, chunk: int = 4096) -> GBufferFn:
-    """points [N, 3] -> the values [N, 9] of the nearest ground-truth pixel."""
+    """points [N, 3] -> the values [N, 3 + K] of the nearest ground-truth pixel."""
     def lookup(points: torch.Tensor) -> torch.Tensor:
         src = gt.points.to(points.device)
         out = []
