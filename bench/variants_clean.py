@@ -70,6 +70,7 @@ from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
 from neumatex_core.eval.suite import (  # noqa: E402
     Results,
+    load_results,
     object_families,
     paired_difference,
     paired_values,
@@ -207,10 +208,12 @@ def object_table(stored: dict[str, dict[str, dict[str, float]]], variant: str, b
 def page_rows(out: Path, variant: str) -> dict[str, dict[str, float]]:
     """object -> scores of `variant` in the evaluation in `out` (OUT/results/<object>/<variant>.json: what its page
     shows, e.g. bench/results/eval-clean for docs/default/results.md)."""
-    rows = {}
-    for path in sorted(out.glob(f"results/*/{variant}.json")):
-        result = json.loads(path.read_text())
-        rows[path.parent.name] = {m: float(result[m]) for m in METRICS if m in result}
+    objects = sorted(p.name for p in (out / "results").iterdir() if p.is_dir())
+    rows: dict[str, dict[str, float]] = {}
+    for metric, values in load_results(out, objects, {variant: variant})[variant].items():
+        for obj, value in values.items():
+            if metric in METRICS:
+                rows.setdefault(obj, {})[metric] = value
     return rows
 
 

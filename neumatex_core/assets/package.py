@@ -61,7 +61,13 @@ from neumatex_core.assets.usd import write_usd
 from neumatex_core.fields.decoders import DECODERS, module_id
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.hashing import sha256_file
-from neumatex_core.materials.neural_basis import BasisError, NeuralBasis, check_basis_id, load_basis
+from neumatex_core.materials.neural_basis import (
+    BasisError,
+    NeuralBasis,
+    check_basis_id,
+    latent_channel_names,
+    load_basis,
+)
 
 MESH = "mesh.obj"
 TENSORS = "tensors.safetensors"
@@ -138,13 +144,6 @@ def write_pbr_textures(asset: MaterialAsset, root: Path) -> list[Path]:
     (root / PBR_BASE).write_bytes(png_bytes(base))
     (root / PBR_MR).write_bytes(png_bytes(mr))
     return [root / PBR_BASE, root / PBR_MR]
-
-
-def latent_channel_names(k: int) -> tuple[str, ...]:
-    """latent.exr's channel names for K latents: l0..l5 for 6, l00..l15 for 16. EXR keeps channels sorted by name,
-    so the digits are zero-padded to one width to keep the latent's order."""
-    width = len(str(k - 1))
-    return tuple(f"l{i:0{width}d}" for i in range(k))
 
 
 def write_textures(asset: MaterialAsset, root: Path) -> list[Path]:

@@ -214,6 +214,14 @@ def basis_record(record: Path = DEFAULT_RECORD) -> dict[str, object]:
     return dict(json.loads(record.read_text()))
 
 
+def latent_channel_names(k: int) -> tuple[str, ...]:
+    """EXR channel names of a K-latent image (an asset's latent.exr, a synthetic object's latent G-buffer): l0..l5
+    for 6, l00..l15 for 16. EXR keeps channels sorted by name, so the digits are zero-padded to one width to keep
+    the latent's order."""
+    width = len(str(k - 1))
+    return tuple(f"l{i:0{width}d}" for i in range(k))
+
+
 def basis_latent_dim(basis_id: str) -> int:
     """The latent size of the installed basis `basis_id`, from its record (the weights are not read)."""
     architecture = basis_record(installed_bases()[basis_id][1])["architecture"]

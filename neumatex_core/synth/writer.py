@@ -48,7 +48,7 @@ from neumatex_core.imageio import write_image
 from neumatex_core.lighting.envmap import EnvironmentMap, envmap_rgb
 from neumatex_core.materials.field import MaterialField
 from neumatex_core.materials.layered import PARAMETER_NAMES
-from neumatex_core.materials.neural_basis import NeuralBasis
+from neumatex_core.materials.neural_basis import LATENT_DIM, NeuralBasis, latent_channel_names
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
 from neumatex_core.synth.config import SynthConfig
@@ -63,7 +63,7 @@ GBUFFER_CHANNELS = {
     "position": ("X", "Y", "Z"),
     "normal": ("X", "Y", "Z"),
     "basecolor": ("R", "G", "B"),
-    "latent": ("l0", "l1", "l2", "l3", "l4", "l5"),
+    "latent": latent_channel_names(LATENT_DIM),
     "pbr": ("base_r", "base_g", "base_b", "roughness", "metallic"),
     "region": ("region",),
 }
