@@ -80,7 +80,7 @@ from neumatex_core.eval.suite import (  # noqa: E402
 from neumatex_core.eval.variants import VARIANTS, variant_config  # noqa: E402
 from neumatex_core.materials.neural_basis import BASIS_V4, load_basis  # noqa: E402
 from neumatex_core.pipeline import ExtractConfig  # noqa: E402
-from neumatex_core.tto.pbr_start import alternative_wins  # noqa: E402
+from neumatex_core.tto.pbr_start import alternative_wins, in_select_basis  # noqa: E402
 
 METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor", "psnr_latents")
 NAMES = {"psnr_pathtrace_clean": "PathTrace, clean", "psnr_relight_clean": "Relight, clean",
@@ -275,6 +275,49 @@ def same_uniform_choice(variant: str, other: str, choice: dict[str, float]) -> b
     return (gain > a.select_margin_db) == (gain > b.select_margin_db)
 
 
+def basis_sides(variant: str) -> tuple[str, str] | None:
+    """With TTOConfig.select_basis: the variants that are `variant`'s configured basis alone and its other basis
+    alone (`in_select_basis`), by config; None without select_basis or where VARIANTS names no such pair."""
+    base = ExtractConfig.preset("cpu").tto
+    tto = variant_config(variant, base)
+    if tto is None or not tto.select_basis:
+        return None
+    wanted = (replace(tto, select_basis=""), in_select_basis(tto))
+    names = [next((n for n in VARIANTS if variant_config(n, base) == want), None) for want in wanted]
+    return None if names[0] is None or names[1] is None else (names[0], names[1])
+
+
+def basis_choice_result(variant: str, own: dict[str, Any], other: dict[str, Any]) -> dict[str, Any] | None:
+    """`variant`'s result (select_basis) from the results of its two sides (`basis_sides`: flat score and choice_
+    records, as the evaluation stores them), or None when their choice records do not tell. The choice's candidates
+    in each basis are those sides' own (the same PBR phase, start and steps: tests/test_tto.py
+    `test_select_basis_...`), so their held-out scores decide as the TTO does: the other basis where its kept
+    candidate beats the configured one's by more than select_margin_db. The result is the taken side's scores with
+    the configured side's choice record and the other's scores beside it, as the TTO records them; not its TTO
+    time, which is both sides' choice and one side's TTO after it."""
+    tto = variant_config(variant, ExtractConfig.preset("cpu").tto)
+    assert tto is not None
+
+    def kept(result: dict[str, Any]) -> float | None:
+        if "choice_uniform_kept" not in result or not result.get("choice_validation_photos"):
+            return None
+        name = "uniform" if result["choice_uniform_kept"] else "textured"
+        return float(result[f"choice_validation_psnr_{name}"])
+
+    a, b = kept(own), kept(other)
+    if a is None or b is None:
+        return None
+    taken = b > a + tto.select_margin_db
+    scores = {k: v for k, v in (other if taken else own).items() if not k.startswith("choice_")
+              and k not in ("object", "variant", "source", "tto_minutes")}  # fmt: skip
+    choice = {k: v for k, v in own.items() if k.startswith("choice_")}
+    choice.update({"choice_select_basis_psnr_uniform": other["choice_validation_psnr_uniform"],
+                   "choice_select_basis_psnr_textured": other["choice_validation_psnr_textured"],
+                   "choice_select_basis_uniform_kept": other["choice_uniform_kept"],
+                   "choice_select_basis_taken": float(taken)})  # fmt: skip
+    return {**scores, **choice}
+
+
 def to_eval(variants: list[str], out: Path, fill_from: Sequence[str] = ()) -> int:
     """Write the latest row per (object, variant) of this file as the evaluation's result in `out` (the fields
     `evaluate_variant` stores: scores, choices, object, variant) with its "source"; print how many per variant.
@@ -293,6 +336,7 @@ def to_eval(variants: list[str], out: Path, fill_from: Sequence[str] = ()) -> in
                  if (f, o) in latest and same_uniform_choice(variant, f, latest[(f, o)].get("choice", {}))), None)
             if row is not None:
                 rows.append(row)
+        composed = composed_rows(variant, out, latest, {r["object"] for r in rows})
         for row in rows:
             stand_in = "" if row["variant"] == variant else f", {row['variant']}'s row: the same choice"
             result = {**row["scores"], **row.get("choice", {}), "object": row["object"], "variant": variant,
@@ -301,8 +345,46 @@ def to_eval(variants: list[str], out: Path, fill_from: Sequence[str] = ()) -> in
             path = result_path(out, row["object"], variant)
             path.parent.mkdir(parents=True, exist_ok=True)
             write_json_atomic(path, result)
-        print(f"{variant}: {len(rows)} objects written to {out}/results")
+        for obj, result in composed.items():
+            write_json_atomic(result_path(out, obj, variant), result)
+        print(f"{variant}: {len(rows) + len(composed)} objects written to {out}/results"
+              + (f" ({len(composed)} from its two bases' results)" if composed else ""))
     return 0
+
+
+def composed_rows(variant: str, out: Path, latest: dict[tuple[str, str], dict[str, Any]],
+                  have: set[str]) -> dict[str, dict[str, Any]]:
+    """object -> `variant`'s result made from its two sides' results (`basis_sides`, `basis_choice_result`) on the
+    objects not in `have`: each side's result from the evaluation in `out` (e.g. the default's page, its rows
+    filled in there) or else its latest row of this file."""
+    sides = basis_sides(variant)
+    if sides is None:
+        return {}
+
+    def side(name: str, obj: str) -> tuple[dict[str, Any], str] | None:
+        path = result_path(out, obj, name)
+        if path.is_file():
+            return json.loads(path.read_text()), f"{out}/results/{obj}/{name}.json"
+        row = latest.get((name, obj)) or next((r for r in reversed(own_rows())
+                                               if r["variant"] == name and r["object"] == obj), None)
+        if row is None:
+            return None
+        return ({**row["scores"], **row.get("choice", {})},
+                f"bench/results/variants_clean.jsonl {row['timestamp']} (commit {row['commit'][:7]})")
+
+    made: dict[str, dict[str, Any]] = {}
+    objects = sorted(p.name for p in (out / "results").iterdir() if p.is_dir()) if (out / "results").is_dir() else []
+    for obj in objects:
+        found = [side(name, obj) for name in sides]
+        if obj in have or found[0] is None or found[1] is None:
+            continue
+        result = basis_choice_result(variant, found[0][0], found[1][0])
+        if result is not None:
+            taken = sides[1] if result["choice_select_basis_taken"] else sides[0]
+            made[obj] = {**result, "object": obj, "variant": variant,
+                         "source": f"the basis choice of {sides[0]} ({found[0][1]}) and {sides[1]} ({found[1][1]}): "
+                                   f"{taken}'s scores"}  # fmt: skip
+    return made
 
 
 def main() -> int:

@@ -51,7 +51,7 @@ from neumatex_core.geometry.gbuffer import render_gbuffer
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
-from neumatex_core.materials.neural_basis import BASIS_V4, load_basis
+from neumatex_core.materials.neural_basis import BASIS_V4, BASIS_V6, load_basis
 from neumatex_core.tto.config import PRESETS, UNIFORM_RHO_VALUE, TTOConfig  # extract presets use TTO presets
 from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.optimise import decoder_for
@@ -90,12 +90,17 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # metals (items 66-74 give the figures). The choice keeps the textured material whenever it scores better on the
 # held-out photos (select_margin_db 0, not TTOConfig's 0.25): both branches run on all 40 objects, the 12 whose
 # margin lay in (0, 0.25] gained clean PathTrace +0.33 +- 0.11 and Relight +0.19 +- 0.14 dB over the 40, and no
-# Cycles capture's margin lies there (item 75).
+# Cycles capture's margin lies there (item 75). The choice also runs both candidates in basis v6 (16 latent
+# numbers, every sphere family >= 35 dB; its decoder fine-tuned) from the same PBR solution and takes v6 where its
+# kept candidate scores better on the held-out photos (select_basis): over the plain TTO in v1/v4, on all 40
+# objects, clean, PathTrace +0.89 +- 0.21 and Relight +1.13 +- 0.29 dB, and on the 16 Cycles captures it keeps v1
+# on every sheen (which v6 alone loses by 4.9 dB) and takes v6 on most metals (relit +1.85 +- 0.73); 200 neural
+# steps more, a start fit more (item 80).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
                                    "decoder_in_other_basis": False, "settle_fraction": 7 / 9, "select_fraction": 1 / 9,
                                    "settle_photo_loss": "decorrelated_debiased", "settle_lr": 1.0,
-                                   "select_margin_db": 0.0}
+                                   "select_margin_db": 0.0, "select_basis": BASIS_V6}
 NEURAL_STEPS_SCALE = 2.25  # ExtractConfig.neural_steps_scale's default (above)
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
@@ -150,8 +155,9 @@ class ExtractConfig:
     when views are synthesised; texture_resolution: baked asset textures; preview_resolution / preview_spp: preview
     renders; eval_photos / eval_spp: photos re-rendered at export for the photo PSNR (0: none); variation: how the
     object's material varies over its surface, which sets the neural phase's consistency term (`VARIATIONS`):
-    "choose" (the default: both tried, held-out photos decide; 1300 TTO steps, not 1100, on cpu; "textured" without
-    the PBR start), "textured" (several materials or textures) or "uniform" (one material all over; needs init "pbr");
+    "choose" (the default: both tried, held-out photos decide, in basis v6 too; 1500 TTO steps, not 1100, on cpu;
+    "textured" without the PBR start), "textured" (several materials or textures) or "uniform" (one material all
+    over; needs init "pbr");
     lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or
     "cuda"; seed: every random draw; name: asset name (default: the capture folder's)."""
 
@@ -213,12 +219,15 @@ class ExtractConfig:
     def variant_base(self) -> TTOConfig:
         """The TTO config with this config's init switch, seed and variation ("choose" is "textured" where there is
         no PBR start); the start anchor (reg "start") and the alternative basis only where there is a PBR start
-        (init "pbr"), no anchor and the one basis otherwise. The schedule the evaluation's variants are defined on
+        (init "pbr"), no anchor and the one basis otherwise; the other basis (select_basis) only where the variation
+        chooses on held-out photos ("choose"). The schedule the evaluation's variants are defined on
         (eval/variants.py `variant_config`): its `steps` are `tto.steps`, not scaled."""
         variation = "textured" if self.variation == "choose" and not self.has_pbr_start() else self.variation
         tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[variation])
         if tto.init != "pbr":  # the anchor to the start and the alternative basis's start need the PBR start
             tto = replace(tto, reg="none" if tto.reg == "start" else tto.reg, alternative_basis="")
+        if not (tto.select_uniform or tto.select_anchor):  # the other basis is tried in a choice on held-out photos
+            tto = replace(tto, select_basis="")
         return tto
 
     def tto_config(self) -> TTOConfig:
@@ -763,30 +772,48 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
 
 def _choice_note(tto_metrics: dict[str, Any]) -> str:
     """The report's words for the choice the TTO made on held-out photos (TTOConfig.select_uniform /
-    select_anchor, recorded in the tto stage's metrics), that variation "choose" was "textured" for want of a PBR
-    start, or "" when there was no choice."""
-    for choice in CHOICES.values():
-        if choice.kept_key in tto_metrics:
-            a, b = choice.names
-            if not tto_metrics["validation_photos"]:
-                return f" ({choice.names[choice.fallback]}: the capture has no photos to hold out and choose on)"
-            return (f" ({a if tto_metrics[choice.kept_key] else b} chosen on {tto_metrics['validation_photos']:.0f} "
-                    f"held-out photos: {a} {tto_metrics[f'validation_psnr_{a}']:.2f} dB, {b} "
-                    f"{tto_metrics[f'validation_psnr_{b}']:.2f} dB)")
-    if tto_metrics.get("variation") == "choose":
-        return " (textured: without the PBR start there is nothing to choose from)"
-    return ""
+    select_anchor, and select_basis's other basis, recorded in the tto stage's metrics), that variation "choose" was
+    "textured" for want of a PBR start, or "" when there was no choice."""
+    choice = next((c for c in CHOICES.values() if c.kept_key in tto_metrics), None)
+    if choice is None:
+        return " (textured: without the PBR start there is nothing to choose from)" if tto_metrics.get(
+            "variation") == "choose" else ""
+    a, b = choice.names
+    if not tto_metrics["validation_photos"]:
+        return f" ({choice.names[choice.fallback]}: the capture has no photos to hold out and choose on)"
+
+    def scores(prefix: str) -> str:  # one basis's candidates' held-out scores
+        return f"{a} {tto_metrics[prefix + a]:.2f} dB, {b} {tto_metrics[prefix + b]:.2f} dB"
+
+    def kept(prefix: str) -> str:
+        return a if tto_metrics[prefix + choice.kept_key] else b
+
+    held = f"{tto_metrics['validation_photos']:.0f} held-out photos"
+    if not tto_metrics.get("select_basis_taken"):
+        tried = ("select_basis_taken" in tto_metrics and f"; in the other basis tried {scores('select_basis_psnr_')}"
+                 ) or ""
+        return f" ({kept('')} chosen on {held}: {scores('validation_psnr_')}{tried})"
+    return (f" ({kept('select_basis_')} in this basis chosen on {held}: {scores('select_basis_psnr_')}; in the "
+            f"configured basis {scores('validation_psnr_')})")
 
 
 def _basis_note(tto_metrics: dict[str, Any]) -> str:
-    """The report's words for the neural basis the TTO ran in and, with TTOConfig.alternative_basis, why (the
-    photo PSNR of the PBR solution and of its start in each basis tried; tto/pbr_start.py `choose_basis`)."""
+    """The report's words for the neural basis the TTO ran in and why: with TTOConfig.alternative_basis the photo
+    PSNR of the PBR solution and of its start in each basis tried (tto/pbr_start.py `choose_basis`); with
+    select_basis taken, that its candidates won on the held-out photos (`_choice_note` gives the scores)."""
     if "basis" not in tto_metrics:
         return ""
     note = f"; neural basis {tto_metrics['basis']}"
+    if tto_metrics.get("select_basis_taken"):
+        note += ", taken because its candidates reproduced the held-out photos better"
     if "basis_switched" not in tto_metrics:
         return note
     pbr, own = tto_metrics["basis_pbr_psnr"], tto_metrics["basis_start_psnr"]
+    if tto_metrics.get("select_basis_taken"):
+        other = tto_metrics.get("basis_alternative_psnr")
+        tried = "" if other is None else f", in the alternative {other:.2f} dB"
+        return (f"{note} (the PBR solution {pbr:.2f} dB on the scoring photos, its start in the configured basis "
+                f"{own:.2f} dB{tried})")
     if tto_metrics["basis_switched"]:
         return (f"{note}, chosen because the PBR solution ({pbr:.2f} dB on the scoring photos) expressed in it "
                 f"scored {tto_metrics['basis_alternative_psnr']:.2f} dB and in the configured basis {own:.2f} dB")

@@ -157,7 +157,9 @@ def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice
     uniform = config(tiny_lmrm, init="pbr", variation="uniform").tto_config()
     assert uniform == replace(base.tto_config(), consistency_rho_value=UNIFORM_RHO_VALUE)
     choose = config(tiny_lmrm, init="pbr", variation="choose")
-    assert choose.tto_config() == replace(base.tto_config(), select_uniform=True, select_reuse_start=True)
+    assert choose.tto_config() == replace(base.tto_config(), select_uniform=True, select_reuse_start=True,
+                                          select_basis=BASIS_V6)  # v6 tried in the choice (design note 80)
+    assert base.tto_config().select_basis == ""  # no choice, so the configured basis alone
     assert config(tiny_lmrm, init="pbr") == choose  # the default
     for init in ("random", "lmrm"):
         with pytest.raises(ValueError, match="variation='uniform'"):
@@ -176,9 +178,36 @@ def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice
     assert steps == list(range(1, total + 1))
     tto = read_done(default_work(out), "tto")
     assert tto["variation"] == "choose" and tto["uniform_kept"] in (0.0, 1.0) and tto["validation_photos"] == 4
-    chosen = "uniform" if tto["uniform_kept"] else "textured"
+    assert tto["select_basis_taken"] in (0.0, 1.0)  # basis v6's candidates were scored too (design note 80)
     page = (out / "report" / "index.html").read_text()
-    assert f"material variation choose ({chosen} chosen on 4 held-out photos: uniform " in page
+    if tto["select_basis_taken"]:
+        chosen = "uniform" if tto["select_basis_uniform_kept"] else "textured"
+        assert f"material variation choose ({chosen} in this basis chosen on 4 held-out photos: uniform " in page
+    else:
+        chosen = "uniform" if tto["uniform_kept"] else "textured"
+        assert f"material variation choose ({chosen} chosen on 4 held-out photos: uniform " in page
+        assert "in the other basis tried uniform" in page
+
+
+def test_the_report_says_which_basis_the_choice_on_held_out_photos_took():
+    """With TTOConfig.select_basis the report names the candidate and basis kept, both bases' held-out scores, and
+    why the asset's basis is the one it is (design note 80)."""
+    from neumatex_core.pipeline import _basis_note, _choice_note
+
+    metrics = {"validation_photos": 4.0, "uniform_kept": 1.0, "validation_psnr_uniform": 25.66,
+               "validation_psnr_textured": 25.62, "select_basis_psnr_uniform": 26.60,
+               "select_basis_psnr_textured": 26.68, "select_basis_uniform_kept": 0.0, "select_basis_taken": 1.0,
+               "basis": BASIS_V6, "basis_pbr_psnr": 24.20, "basis_start_psnr": 20.56,
+               "basis_alternative_psnr": 23.68, "basis_switched": 1.0}  # fmt: skip
+    assert _choice_note(metrics) == (" (textured in this basis chosen on 4 held-out photos: uniform 26.60 dB, textured "
+                                     "26.68 dB; in the configured basis uniform 25.66 dB, textured 25.62 dB)")
+    assert _basis_note(metrics) == (f"; neural basis {BASIS_V6}, taken because its candidates reproduced the held-out "
+                                    "photos better (the PBR solution 24.20 dB on the scoring photos, its start in the "
+                                    "configured basis 20.56 dB, in the alternative 23.68 dB)")
+    kept = {**metrics, "select_basis_taken": 0.0, "basis": "nmx-basis-v4-2b82d9690606"}
+    assert _choice_note(kept) == (" (uniform chosen on 4 held-out photos: uniform 25.66 dB, textured 25.62 dB; in the "
+                                  "other basis tried uniform 26.60 dB, textured 26.68 dB)")
+    assert _basis_note(kept).startswith("; neural basis nmx-basis-v4-2b82d9690606, chosen because the PBR solution")
 
 
 def test_bad_capture_raises_a_pipeline_error_naming_the_file(tmp_path, tiny_lmrm):
@@ -453,14 +482,14 @@ def test_every_eval_table_is_described_and_valid():
     ours = variant_config("ours", base)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
     assert variant_config("pbr", base).steps == 400  # type: ignore[union-attr]
-    # the default's own variant (since midday on 2026-12-04, design note 75) is the extraction's TTO; the one before
-    # it differs only in its choice's margin, the five before that only in their settling's length, the one before
-    # those also in its settling's rate, the one before that also in its settling steps' loss, the one before that
-    # also in the settling phase, and the one before that also in the choice's length; the variants measured against
-    # those build on them
+    # the default's own variant (since the night of 2026-12-04, design note 80) is the extraction's TTO; the one
+    # before it differs only in the other basis tried, the one before that only in its choice's margin, the five
+    # before that only in their settling's length, the one before those also in its settling's rate, the one before
+    # that also in its settling steps' loss, the one before that also in the settling phase, and the one before that
+    # also in the choice's length; the variants measured against those build on them
     from neumatex_core.eval.variants import DEFAULT_VARIANT
 
-    assert DEFAULT_VARIANT == "pbr_start_default_settle_decdb_slr10_s900_m0" and DEFAULT_VARIANT in TABLES["default"]
+    assert DEFAULT_VARIANT == "default_choose_v6" and DEFAULT_VARIANT in TABLES["default"]
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
     assert variant_config(DEFAULT_VARIANT, base) == extraction
     tiny = ExtractConfig.preset("tiny")
@@ -470,8 +499,11 @@ def test_every_eval_table_is_described_and_valid():
     assert (extraction.steps, extraction.settle_fraction, extraction.select_fraction) == (900, 7 / 9, 1 / 9)
     assert extraction.settle_start() == 200 and extraction.select_steps() == 100
     assert extraction.select_margin_db == 0.0  # textured kept whenever it scores better on the held-out photos
+    assert extraction.select_basis == BASIS_V6  # v6's candidates in the choice too (design note 80)
+    m0 = variant_config("pbr_start_default_settle_decdb_slr10_s900_m0", base)
+    assert m0 == replace(extraction, select_basis="")
     s900 = variant_config("pbr_start_default_settle_decdb_slr10_s900", base)
-    assert s900 == replace(extraction, select_margin_db=0.25)
+    assert s900 == replace(m0, select_margin_db=0.25)
     for forced, margin in (("uniform", 100.0), ("textured", -100.0)):  # the choice forced, for both branches
         assert variant_config(f"pbr_start_default_settle_decdb_slr10_s900_{forced}", base) == replace(
             s900, select_margin_db=margin)
@@ -521,7 +553,7 @@ def test_every_eval_table_is_described_and_valid():
     assert frozen == replace(reuse, train_decoder=False, decoder_lr=TTOConfig().decoder_lr, select_reuse_start=False)
     textured = replace(slr10, select_uniform=False, select_reuse_start=False)
     assert ExtractConfig.preset("cpu", variation="textured").tto_config() == replace(
-        extraction, select_uniform=False, select_reuse_start=False)
+        extraction, select_uniform=False, select_reuse_start=False, select_basis="")
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
     assert variant_config("pbr_start_consistent_01", base) == replace(
         textured, alternative_basis="", train_decoder=False, decoder_lr=0.1, decoder_in_other_basis=True,

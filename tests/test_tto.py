@@ -1296,3 +1296,63 @@ def test_shuffled_pixels_draw_every_pixel_once_an_epoch_whatever_the_batches(exa
     g = torch.Generator().manual_seed(0)
     batch = example.photos.shuffled_batch(cfg.pixels_before(7), counts[7], 2, 3, g)
     assert torch.equal(batch.index, whole[cfg.pixels_before(7):cfg.pixels_before(8)])
+
+
+def test_select_basis_joins_another_basis_to_the_choice_and_gives_that_basis_plain_result(example, truth_prediction,
+                                                                                          tmp_path):
+    """TTOConfig.select_basis: the choice's two candidates also run in basis v6 (16 latent numbers, its decoder
+    fine-tuned) from the same PBR solution, on the same held-out photos. Each basis keeps its candidate by the
+    choice's rule, and the other basis is taken when its kept candidate scores better. The result, its basis and
+    each side's scores are bit for bit those of the plain TTO in the basis it took: the configured one's when the
+    margin keeps it, v6's when v6 is taken. The progress counts the two extra candidates; a stop during them resumes
+    to the same result (docs/design-notes.md item 80)."""
+    from neumatex_core.materials.neural_basis import BASIS_V6, load_basis
+    from neumatex_core.tto import solve
+    from neumatex_core.tto.pbr_start import in_select_basis
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=0.5,
+                           select_reuse_start=True, train_decoder=True, decoder_in_other_basis=False,
+                           pbr_fit_steps=50, select_margin_db=0.0, select_basis=BASIS_V6)  # fmt: skip
+    assert cfg.run_steps() == 4 + 4 * 2 + 4
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2))
+    v6 = load_basis(basis_id=BASIS_V6)
+    plain = solve(replace(cfg, select_basis=""), *args, example.basis)
+    in_v6 = solve(in_select_basis(cfg), *args, v6)
+    assert in_v6.params.field().basis.basis_id == BASIS_V6 and in_v6.params.trained_decoder() is not None
+
+    def kept(result) -> float:
+        s = result.selection
+        return s["validation_psnr_uniform"] if s["uniform_kept"] else s["validation_psnr_textured"]
+
+    steps: list[int] = []
+    chosen = solve(cfg, *args, example.basis, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
+    assert steps == list(range(1, cfg.run_steps() + 1))
+    (tmp_path / "stopped").mkdir()
+    assert {"select_uniform_other.pt", "select_textured_other.pt"} <= {p.name for p in tmp_path.iterdir()}
+    s = chosen.selection
+    for name in ("uniform", "textured"):  # each side's candidates are the plain TTO's
+        assert s[f"validation_psnr_{name}"] == plain.selection[f"validation_psnr_{name}"]
+        assert s[f"select_basis_psnr_{name}"] == in_v6.selection[f"validation_psnr_{name}"]
+    assert s["select_basis_uniform_kept"] == in_v6.selection["uniform_kept"]
+    print("held-out PSNR, configured basis", kept(plain), "v6", kept(in_v6))
+    assert s["select_basis_taken"] == float(kept(in_v6) > kept(plain))
+    resumed = resumed_after_stop(cfg, (*args, example.basis), tmp_path / "stopped", 4 + 2 + 1)  # v6 candidate 1
+    assert resumed.selection == chosen.selection and torch.equal(resumed.params.tensor, chosen.params.tensor)
+    # with the margin each way, each basis in turn: the plain TTO in that basis at that margin, bit for bit (a
+    # margin this large also decides uniform/textured, in the choice and in the plain TTO alike)
+    for margin, alone, basis in ((-100.0, in_select_basis(cfg), v6), (100.0, replace(cfg, select_basis=""),
+                                                                        example.basis)):
+        forced = solve(replace(cfg, select_margin_db=margin), *args, example.basis)
+        reference = solve(replace(alone, select_margin_db=margin), *args, basis)
+        assert forced.selection["select_basis_taken"] == float(basis is v6)
+        assert forced.params.field().basis.basis_id == basis.basis_id
+        assert (forced.basis is None) == (basis is not v6)
+        assert torch.equal(forced.params.tensor, reference.params.tensor)
+        trained, want = forced.params.trained_decoder(), reference.params.trained_decoder()
+        assert trained is not None and want is not None
+        assert all(torch.equal(a, b) for a, b in zip(trained.state_dict().values(), want.state_dict().values(),
+                                                     strict=True))
+    for bad in ({"select_uniform": False}, {"init": "lmrm"}, {"basis": BASIS_V6}, {"select_basis": "nmx-basis-v9"}):
+        with pytest.raises(ValueError, match="select_basis"):
+            replace(cfg, **bad).check()

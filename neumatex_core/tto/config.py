@@ -270,6 +270,14 @@ class TTOConfig:
     # default: on benchmark objects 0-7 it cost PathTrace 0.22 dB (0.15 at select_continue_lr 0.5)
     select_continue: bool = False
     select_continue_lr: float = 1.0
+    # select_anchor / select_uniform: another installed basis (any latent size) whose own candidates join the choice:
+    # the same PBR solution expressed in it (no alternative basis there), its two candidates run and scored on the
+    # same held-out photos, its decoder fine-tuned (its latent rows beyond the LMRM's are untrained; frozen, basis
+    # v6 lost 2-5 dB, docs/design-notes.md item 78). Each basis keeps its candidate by the choice's rule; the other
+    # basis is taken when its kept candidate scores better than the configured basis's by more than
+    # select_margin_db. So one capture's material can be one that v6's 16 latents hold better (metals, most of the
+    # benchmark) while another keeps v1 (Cycles sheens, which v6 loses by 5 dB; item 80)
+    select_basis: str = ""
     # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
     # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
     # start (consistency_of "change"; "value": end alike), so the neural phase may move a material everywhere at once
@@ -320,16 +328,22 @@ class TTOConfig:
         if self.init == "pbr" and (self.material != "neural" or self.field != "triplane"):
             raise ValueError("TTO init='pbr' starts a neural triplane from a PBR fit: it needs material='neural' and "
                              f"field='triplane', got {self.material!r} and {self.field!r}")
-        for key in ("basis", "alternative_basis"):
+        for key in ("basis", "alternative_basis", "select_basis"):
             name = getattr(self, key)
             if name and name not in installed_bases():
                 raise ValueError(f"TTO {key}={name!r} is not installed (installed: {', '.join(installed_bases())})")
             size = basis_latent_dim(name) if name else LATENT_DIM
             if size != LATENT_DIM and (key == "alternative_basis" or self.field != "triplane"):
                 # e.g. basis v5: the triplane's decoder takes its size (docs/design-notes.md item 78), but the
-                # choice between two bases and the UV textures hold one size of G-buffer
+                # choice between two bases' starts and the UV textures hold one size of G-buffer
                 raise ValueError(f"TTO {key}={name!r} has {size} latent numbers: only a triplane field in `basis` "
-                                 f"takes a latent size other than {LATENT_DIM}")
+                                 f"or `select_basis` takes a latent size other than {LATENT_DIM}")
+        if self.select_basis and (not (self.select_anchor or self.select_uniform) or self.init != "pbr"
+                                  or self.select_basis == self.basis):
+            raise ValueError("TTO select_basis joins another basis's candidates to the choice on held-out photos: it "
+                             "needs init 'pbr', select_anchor or select_uniform, and a basis other than `basis`; got "
+                             f"init {self.init!r}, select_anchor {self.select_anchor}, select_uniform "
+                             f"{self.select_uniform}, basis {self.basis!r}, select_basis {self.select_basis!r}")
         if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
             raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
                              f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")
@@ -431,11 +445,11 @@ class TTOConfig:
     def run_steps(self) -> int:
         """Adam steps the TTO runs (its progress counts these): total_steps, and with select_anchor or
         select_uniform first the choice (the PBR phase and two neural phases of select_steps on all photos but the
-        held-out ones), after which select_reuse_start runs the neural phase alone (select_continue: its remaining
-        continue_steps)."""
+        held-out ones, two more with select_basis), after which select_reuse_start runs the neural phase alone
+        (select_continue: its remaining continue_steps)."""
         if not (self.select_anchor or self.select_uniform):
             return self.total_steps()
-        choice = self.pbr_steps + 2 * self.select_steps()
+        choice = self.pbr_steps + 2 * self.select_steps() * (2 if self.select_basis else 1)
         if not self.select_reuse_start:
             return choice + self.total_steps()
         return choice + (self.continue_steps() if self.select_continue else self.steps)

@@ -238,7 +238,8 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
     # The schedule's settling, the smoothness term and Adam's settings are the neural phase's: the PBR phase is the
     # baseline's own TTO.
     pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="",
-                         select_anchor=False, select_uniform=False, alternative_basis="", settle_fraction=0.0,
+                         select_anchor=False, select_uniform=False, select_basis="", alternative_basis="",
+                         settle_fraction=0.0,
                          lambda_smooth=0.0, coarse_factor=1, optimizer="adam", control_variate="off", lr_warmup=0,
                          adam_beta1=TTOConfig.adam_beta1, adam_beta2=TTOConfig.adam_beta2, adam_eps=TTOConfig.adam_eps)
     pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
@@ -258,7 +259,7 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
     other_basis = start.switched or bool(config.basis)
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
                             lr=config.lr * config.neural_lr_scale, select_anchor=False,
-                            select_uniform=False, alternative_basis="",
+                            select_uniform=False, select_basis="", alternative_basis="",
                             train_decoder=config.train_decoder and (config.decoder_in_other_basis or not other_basis))
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
@@ -392,7 +393,7 @@ def fit_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Environme
     """The PBR solution `first` expressed in `basis`: the neural phase's problem (`_neural_phase`: the same planes to
     start from, the same fit), its planes fitted by `fit_start_to_pbr`."""
     neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
-                            alternative_basis="")
+                            select_basis="", alternative_basis="")
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
@@ -482,6 +483,25 @@ CHOICES = {
 }
 
 
+def in_select_basis(config: TTOConfig) -> TTOConfig:
+    """config run in its config.select_basis (`TTOConfig.select_basis`): that basis alone, no alternative, the
+    decoder fine-tuned there; the choice's switches as configured (the plain TTO of that basis)."""
+    return replace(config, basis=config.select_basis, select_basis="", alternative_basis="",
+                   decoder_in_other_basis=True)
+
+
+@dataclass
+class _Candidates:
+    """One basis's side of the choice: its candidate configs (`Choice.candidates`), its start, its candidates'
+    results and held-out scores, the one its rule keeps and that one's score."""
+
+    configs: tuple[TTOConfig, TTOConfig]
+    start: BasisStart
+    runs: list[tuple[TTOResult, float]]
+    kept: int
+    score: float
+
+
 def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, tonemap: Tonemap,
                      prediction: LMRMPrediction, basis: NeuralBasis, anchor_available: bool, truth: Truth | None,
                      progress: Progress | None, should_stop: Callable[[], bool] | None,
@@ -490,18 +510,22 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     uniform material: the consistency term with the base colours' values too, or the term as configured; `CHOICES`).
     First the choice: both phases on all photos but `validation_frames`, the neural phase with either candidate
     (config.select_steps() steps), each result scored on the held-out photos (`photo_psnr`, one seed for both); the
-    first (more constrained) candidate stays unless the second gains more than config.select_margin_db. Then the TTO
+    first (more constrained) candidate stays unless the second gains more than config.select_margin_db. With
+    config.select_basis the same two candidates also run in that basis (`in_select_basis`, from the same PBR
+    solution), which is taken when its kept candidate beats the configured basis's by more than select_margin_db.
+    Then the TTO
     with that choice on every photo, so the result is exactly what the plain TTO with the chosen config gives (the
     held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB); or, with
     config.select_reuse_start, its neural phase alone on every photo from the start the choice made (the held-out
     photos then reach the result through the neural phase only; docs/design-notes.md item 40), and with
     config.select_continue only its remaining steps, from the chosen candidate (item 45). Its `selection`
-    records both scores and the choice. A capture with no photos to hold out gets the choice's fallback candidate
-    (`Choice.fallback`; its selection's validation_photos is 0)."""
+    records the scores and the choice. A capture with no photos to hold out gets the choice's fallback candidate
+    (`Choice.fallback`; its selection's validation_photos is 0) in the configured basis."""
     checkpoint = partial(_checkpoint, checkpoint_dir)
     switch = "select_anchor" if config.select_anchor else "select_uniform"
     choice = CHOICES[switch]
-    candidates = choice.candidates(replace(config, select_anchor=False, select_uniform=False))
+    plain = replace(config, select_anchor=False, select_uniform=False, select_basis="")
+    candidates = choice.candidates(plain)
     total = config.run_steps()
     try:
         held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
@@ -510,7 +534,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     chosen, selection = choice.fallback, {choice.kept_key: float(choice.fallback == 0), "validation_photos": 0.0}
     start: BasisStart | None = None
     first: TTOResult | None = None
-    runs: list[tuple[TTOResult, float]] = []  # the candidates' results and scores
+    runs: list[tuple[TTOResult, float]] = []  # the chosen basis's candidates' results and scores
     fit = [i for i in range(photos.count) if i not in held_out]
     if held_out:
         fit_photos, held_photos = photos.subset(fit), photos.subset(held_out)
@@ -518,45 +542,75 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                            _offset(progress, 0, total, 0.0), should_stop, checkpoint("select_pbr.pt"))
         if not first.finished:
             return first
+        steps = config.select_steps()
+        pbr_solution = first  # as set here (the closure below does not see it narrowed)
+
+        def candidates_in(configs: tuple[TTOConfig, TTOConfig], made: BasisStart, offset: int,
+                          suffix: str) -> _Candidates | TTOResult:
+            """Both candidates from the start `made`, side by side, scored on the held-out photos; the stopped
+            candidate's result when one was stopped."""
+            reports = _JointReports(progress, should_stop, offset, total, len(configs))
+
+            def candidate_score(k: int) -> tuple[TTOResult, float]:
+                """Candidate k's neural phase on the fitted photos and its score on the held-out ones (nan: stopped)."""
+                result = _neural_phase(replace(configs[k], steps=steps), pbr_solution, mesh, envmap, fit_photos,
+                                       tonemap, prediction, made.basis, anchor_available, truth,
+                                       reports.progress_of(k), reports.stop_check(),
+                                       checkpoint(f"select_{choice.names[k]}{suffix}.pt"), made)  # fmt: skip
+                if not result.finished:
+                    return result, math.nan
+                return result, photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
+                                          config.seed + 1)  # fmt: skip
+
+            # the candidates share no state they write (each has its own problem, planes, decoder copy, checkpoint)
+            done = side_by_side([partial(candidate_score, k) for k in range(len(configs))],
+                                pbr_solution.params.tensor.device)
+            for result, _ in done:
+                if not result.finished:
+                    return result
+            kept = 0 if done[1][1] <= done[0][1] + config.select_margin_db else 1
+            return _Candidates(configs, made, done, kept, done[kept][1])
+
         # the basis is chosen once, here, for both candidates and the TTO that follows
         start = neural_start(config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction, basis,
                              anchor_available)  # fmt: skip
-        steps = config.select_steps()
-        reports = _JointReports(progress, should_stop, config.pbr_steps, total, len(candidates))
-        pbr_solution, chosen_start = first, start  # as set here (the closure below does not see them narrowed)
-
-        def candidate_score(k: int) -> tuple[TTOResult, float]:
-            """Candidate k's neural phase on the fitted photos and its score on the held-out ones (nan: stopped)."""
-            result = _neural_phase(replace(candidates[k], steps=steps), pbr_solution, mesh, envmap, fit_photos, tonemap,
-                                   prediction, chosen_start.basis, anchor_available, truth, reports.progress_of(k),
-                                   reports.stop_check(), checkpoint(f"select_{choice.names[k]}.pt"),
-                                   chosen_start)  # fmt: skip
-            if not result.finished:
-                return result, math.nan
-            return result, photo_psnr(result.params, result.mesh or mesh, envmap, held_photos, tonemap, config,
-                                      config.seed + 1)  # fmt: skip
-
-        # the candidates share no state they write (each has its own problem, planes, decoder copy, checkpoint)
-        runs = side_by_side([partial(candidate_score, k) for k in range(len(candidates))], first.params.tensor.device)
-        for result, _ in runs:
-            if not result.finished:
-                return result
-        scores = [score for _, score in runs]
-        keep = scores[1] <= scores[0] + config.select_margin_db
-        chosen = 0 if keep else 1
+        own = candidates_in(candidates, start, config.pbr_steps, "")
+        if isinstance(own, TTOResult):
+            return own
+        side = own
+        scores = [score for _, score in own.runs]
+        chosen = own.kept
         selection = {f"validation_psnr_{choice.names[0]}": scores[0],
-                     f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(keep),
+                     f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(chosen == 0),
                      "validation_photos": float(len(held_out))}  # fmt: skip
         if switch == "select_uniform":  # evidence of light painted into the textured base colour (recorded only;
             # one thread, so it is the same bits whether the candidates ran side by side or not)
-            (uniform, _), (textured, _) = runs
+            (uniform, _), (textured, _) = own.runs
             with torch_threads(1):
                 selection.update(light_following(lambda q: textured.params.gbuffer(q, None),
                                                  lambda q: uniform.params.gbuffer(q, None), textured.mesh or mesh,
                                                  envmap, first.params.tensor.device, seed=config.seed))
+        selection.update(start.record)
+        if config.select_basis:  # the same candidates in the other basis, from the same PBR solution
+            other_config = in_select_basis(config)
+            other_basis = load_basis(str(first.params.tensor.device), config.select_basis)
+            other_start = neural_start(other_config, first, mesh, envmap, fit_photos, held_photos, tonemap,
+                                       prediction, other_basis, anchor_available)  # fmt: skip
+            other = candidates_in(choice.candidates(replace(other_config, select_anchor=False, select_uniform=False)),
+                                  other_start, config.pbr_steps + 2 * steps, "_other")  # fmt: skip
+            if isinstance(other, TTOResult):
+                return other
+            taken = other.score > own.score + config.select_margin_db
+            selection.update({f"select_basis_psnr_{choice.names[0]}": other.runs[0][1],
+                              f"select_basis_psnr_{choice.names[1]}": other.runs[1][1],
+                              f"select_basis_{choice.kept_key}": float(other.kept == 0),
+                              "select_basis_taken": float(taken)})  # fmt: skip
+            if taken:
+                side, chosen = other, other.kept
+        runs, start = side.runs, side.start
+        candidates = side.configs
     final_config, final_basis = candidates[chosen], basis
     if start is not None:
-        selection = {**selection, **start.record}
         final_config = replace(final_config, alternative_basis="",
                                basis=start.basis.basis_id if start.switched else final_config.basis)
         final_basis = start.basis
@@ -579,5 +633,5 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                       _offset(progress, total - config.total_steps(), total, 2.0), should_stop,
                       checkpoint_dir)  # fmt: skip
     final.selection = selection
-    final.basis = start.basis if start is not None and start.switched else final.basis
+    final.basis = final_basis if final_basis.basis_id != basis.basis_id else final.basis
     return final
