@@ -513,9 +513,8 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     first (more constrained) candidate stays unless the second gains more than config.select_margin_db. With
     config.select_basis the same two candidates also run in that basis (`in_select_basis`, from the same PBR
     solution), which is taken when its kept candidate beats the configured basis's by more than select_margin_db.
-    Then the TTO
-    with that choice on every photo, so the result is exactly what the plain TTO with the chosen config gives (the
-    held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB); or, with
+    Then the TTO with that choice on every photo, so the result is exactly what the plain TTO with the chosen config
+    gives (the held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB); or, with
     config.select_reuse_start, its neural phase alone on every photo from the start the choice made (the held-out
     photos then reach the result through the neural phase only; docs/design-notes.md item 40), and with
     config.select_continue only its remaining steps, from the chosen candidate (item 45). Its `selection`
@@ -524,8 +523,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     checkpoint = partial(_checkpoint, checkpoint_dir)
     switch = "select_anchor" if config.select_anchor else "select_uniform"
     choice = CHOICES[switch]
-    plain = replace(config, select_anchor=False, select_uniform=False, select_basis="")
-    candidates = choice.candidates(plain)
+    candidates = choice.candidates(replace(config, select_anchor=False, select_uniform=False, select_basis=""))
     total = config.run_steps()
     try:
         held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
@@ -571,18 +569,21 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
             kept = 0 if done[1][1] <= done[0][1] + config.select_margin_db else 1
             return _Candidates(configs, made, done, kept, done[kept][1])
 
+        def scores_of(side: _Candidates, prefix: str = "") -> dict[str, float]:
+            """A side's held-out scores and which it kept, as the selection records them: validation_psnr_<name>
+            and kept_key for the configured basis, each key after `prefix` for the other."""
+            scored = prefix or "validation_"
+            return {f"{scored}psnr_{choice.names[0]}": side.runs[0][1], f"{scored}psnr_{choice.names[1]}":
+                    side.runs[1][1], f"{prefix}{choice.kept_key}": float(side.kept == 0)}  # fmt: skip
+
         # the basis is chosen once, here, for both candidates and the TTO that follows
         start = neural_start(config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction, basis,
                              anchor_available)  # fmt: skip
         own = candidates_in(candidates, start, config.pbr_steps, "")
         if isinstance(own, TTOResult):
             return own
-        side = own
-        scores = [score for _, score in own.runs]
-        chosen = own.kept
-        selection = {f"validation_psnr_{choice.names[0]}": scores[0],
-                     f"validation_psnr_{choice.names[1]}": scores[1], choice.kept_key: float(chosen == 0),
-                     "validation_photos": float(len(held_out))}  # fmt: skip
+        side, chosen = own, own.kept
+        selection = {**scores_of(own), "validation_photos": float(len(held_out))}
         if switch == "select_uniform":  # evidence of light painted into the textured base colour (recorded only;
             # one thread, so it is the same bits whether the candidates ran side by side or not)
             (uniform, _), (textured, _) = own.runs
@@ -601,10 +602,7 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
             if isinstance(other, TTOResult):
                 return other
             taken = other.score > own.score + config.select_margin_db
-            selection.update({f"select_basis_psnr_{choice.names[0]}": other.runs[0][1],
-                              f"select_basis_psnr_{choice.names[1]}": other.runs[1][1],
-                              f"select_basis_{choice.kept_key}": float(other.kept == 0),
-                              "select_basis_taken": float(taken)})  # fmt: skip
+            selection.update({**scores_of(other, "select_basis_"), "select_basis_taken": float(taken)})
             if taken:
                 side, chosen = other, other.kept
         runs, start = side.runs, side.start
