@@ -30,7 +30,9 @@ again beside a variant on one machine (results move between machines: docs/desig
 `neumatex eval --out OUT --report-only` pages them, e.g. the default's table once its variant has rows on every
 object (docs/design-notes.md items 51 and 59). With `--fill-from B,C`, where a variant has no row, the row of B or C
 that differs from it only in the uniform/textured choice's margin and makes the same choice there stands in
-(`same_uniform_choice`, item 75):
+(`same_uniform_choice`, item 75). A variant that also tries another basis (`TTOConfig.select_basis`, item 80)
+with no row of its own is made from its two sides' results (the plain TTO in each basis, `basis_sides`: from OUT's
+results or this file): their recorded held-out scores decide as its TTO does (`basis_choice_result`):
 
     .venv/bin/python bench/variants_clean.py --to-eval bench/results/eval-clean \\
         --variants pbr_start_default_settle_decdb
