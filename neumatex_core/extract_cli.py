@@ -33,10 +33,11 @@ class ExtractCommandConfig:
         "measured), from the LMRM's prediction (lmrm) or a random triplane; pbr and lmrm fail without a usable LMRM "
         "checkpoint; auto: pbr when the LMRM checkpoint loads, else random (and says so)")
     variation: Literal["default", "textured", "uniform", "choose"] = option(
-        "default", "how the object's material varies over its surface: choose (both tried, 4 held-out photos decide; "
-        "~2x the TTO time), textured (several materials or textures) or uniform (one material all over: a coat, a "
-        "sheen; its base colour is kept even over the surface); uniform and choose need the PBR start (--init pbr or "
-        "auto; choose is textured without it); default: the extract config's (choose)")
+        "default", "how the object's material varies over its surface: choose (both tried, in the configured basis "
+        "and in basis v6, 4 held-out photos decide; ~2x the TTO time), textured (several materials or textures) or "
+        "uniform (one material all over: a coat, a sheen; its base colour is kept even over the surface); uniform and "
+        "choose need the PBR start (--init pbr or auto; choose is textured without it); default: the extract "
+        "config's (choose)")
     threads: int = option(1, "torch CPU threads (0: torch's default); one is fastest on a shared machine")
     steps: int = option(0, "neural TTO steps (0: the preset's)")
     photo_exposure: bool = option(False, "fit each photo's exposure in TTO (hand-held photos; docs/capture-format.md)")
