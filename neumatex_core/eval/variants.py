@@ -346,7 +346,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # ... the default and default_v6_dec both tried on the held-out photos (TTOConfig.select_basis): the same PBR
     # phase, each basis's uniform and textured candidates scored, v6 taken where its kept candidate scores better.
     # Read from both variants' stored rows (their held-out scores are the choice's), on all 40 objects PathTrace
-    # +0.89 +- 0.21 and Relight +1.13 +- 0.29 over the default; on the 16 Cycles captures it keeps v1 on every sheen
+    # +0.87 +- 0.21 and Relight +1.13 +- 0.29 over the default; on the 16 Cycles captures it keeps v1 on every sheen
     # (relit: sheen +0.00, coat -0.27 +- 0.42, metal +1.85 +- 0.73, diffuse +1.00 +- 1.64; design note 80)
     "default_choose_v6": DEFAULT_80,
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate

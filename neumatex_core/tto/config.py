@@ -270,7 +270,7 @@ class TTOConfig:
     # default: on benchmark objects 0-7 it cost PathTrace 0.22 dB (0.15 at select_continue_lr 0.5)
     select_continue: bool = False
     select_continue_lr: float = 1.0
-    # select_anchor / select_uniform: another installed basis (any latent size) whose own candidates join the choice:
+    # with select_anchor / select_uniform: another installed basis (any latent size) whose candidates join the choice:
     # the same PBR solution expressed in it (no alternative basis there), its two candidates run and scored on the
     # same held-out photos, its decoder fine-tuned (its latent rows beyond the LMRM's are untrained; frozen, basis
     # v6 lost 2-5 dB, docs/design-notes.md item 78). Each basis keeps its candidate by the choice's rule; the other
