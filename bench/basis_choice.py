@@ -28,9 +28,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, argument_parser, write_result  # noqa: E402
-from variants_clean import basis_choice_result, basis_sides  # noqa: E402
+from variants_clean import basis_choice_result, basis_sides, page_objects  # noqa: E402
 
-from neumatex_core.eval.suite import paired_difference, result_path, select_objects  # noqa: E402
+from neumatex_core.eval.suite import paired_difference, result_path  # noqa: E402
 
 # a side without Cycles rows -> the variant whose rows are its own there: the default of item 75 makes the same
 # choices as s900 on every capture (its margin 0 against 0.25; no capture's lies between)
@@ -48,8 +48,7 @@ def mean_se(values: list[float]) -> tuple[float, float]:
 def page_table(variant: str, sides: tuple[str, str], page: Path) -> dict[str, Any]:
     """The choice on the benchmark objects of the evaluation in `page`: per metric, the choice's mean and its paired
     difference against each side and PBR; how often the other basis was taken."""
-    objects = select_objects(page, "all") if (page / "manifest.json").is_file() else sorted(
-        p.name for p in (page / "results").iterdir() if p.is_dir())
+    objects = page_objects(page)
     res: dict[str, dict[str, dict[str, float]]] = {v: {m: {} for m in PAGE_METRICS} for v in (variant, *sides, "pbr")}
     taken = 0
     for obj in objects:
@@ -103,8 +102,8 @@ def cycles_table(variant: str, sides: tuple[str, str]) -> dict[str, Any]:
     """The choice on every Cycles capture with rows of both sides and PBR: per preset the choice minus each side and
     minus PBR (mean +- s.e. over meshes), and which basis each capture took."""
     latest = cycles_latest()
-    for (capture, variant), scores in list(latest.items()):  # the configured side's own rows first, else its stand-in's
-        if variant == CYCLES_STAND_IN.get(sides[0]):
+    for (capture, name), scores in list(latest.items()):  # the configured side's own rows first, else its stand-in's
+        if name == CYCLES_STAND_IN.get(sides[0]):
             latest.setdefault((capture, sides[0]), scores)
     own = sides[0]
     captures = sorted({c for c, v in latest if v == own} & {c for c, v in latest if v == sides[1]}

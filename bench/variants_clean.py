@@ -207,12 +207,17 @@ def object_table(stored: dict[str, dict[str, dict[str, float]]], variant: str, b
         print(f"| {o}{' <' if behind else ''} | " + " | ".join(cells) + " |")
 
 
+def page_objects(out: Path) -> list[str]:
+    """The objects that have results in the evaluation in `out` (its results/<object>/ folders), sorted."""
+    folder = out / "results"
+    return sorted(p.name for p in folder.iterdir() if p.is_dir()) if folder.is_dir() else []
+
+
 def page_rows(out: Path, variant: str) -> dict[str, dict[str, float]]:
     """object -> scores of `variant` in the evaluation in `out` (OUT/results/<object>/<variant>.json: what its page
     shows, e.g. bench/results/eval-clean for docs/default/results.md)."""
-    objects = sorted(p.name for p in (out / "results").iterdir() if p.is_dir())
     rows: dict[str, dict[str, float]] = {}
-    for metric, values in load_results(out, objects, {variant: variant})[variant].items():
+    for metric, values in load_results(out, page_objects(out), {variant: variant})[variant].items():
         for obj, value in values.items():
             if metric in METRICS:
                 rows.setdefault(obj, {})[metric] = value
@@ -338,7 +343,7 @@ def to_eval(variants: list[str], out: Path, fill_from: Sequence[str] = ()) -> in
                  if (f, o) in latest and same_uniform_choice(variant, f, latest[(f, o)].get("choice", {}))), None)
             if row is not None:
                 rows.append(row)
-        composed = composed_rows(variant, out, latest, {r["object"] for r in rows})
+        composed = composed_rows(variant, out, {r["object"] for r in rows})
         for row in rows:
             stand_in = "" if row["variant"] == variant else f", {row['variant']}'s row: the same choice"
             result = {**row["scores"], **row.get("choice", {}), "object": row["object"], "variant": variant,
@@ -354,31 +359,31 @@ def to_eval(variants: list[str], out: Path, fill_from: Sequence[str] = ()) -> in
     return 0
 
 
-def composed_rows(variant: str, out: Path, latest: dict[tuple[str, str], dict[str, Any]],
-                  have: set[str]) -> dict[str, dict[str, Any]]:
+def composed_rows(variant: str, out: Path, have: set[str]) -> dict[str, dict[str, Any]]:
     """object -> `variant`'s result made from its two sides' results (`basis_sides`, `basis_choice_result`) on the
     objects not in `have`: each side's result from the evaluation in `out` (e.g. the default's page, its rows
     filled in there) or else its latest row of this file."""
     sides = basis_sides(variant)
     if sides is None:
         return {}
+    latest = {(r["variant"], r["object"]): r for r in own_rows() if r["variant"] in sides}
 
     def side(name: str, obj: str) -> tuple[dict[str, Any], str] | None:
         path = result_path(out, obj, name)
         if path.is_file():
             return json.loads(path.read_text()), f"{out}/results/{obj}/{name}.json"
-        row = latest.get((name, obj)) or next((r for r in reversed(own_rows())
-                                               if r["variant"] == name and r["object"] == obj), None)
+        row = latest.get((name, obj))
         if row is None:
             return None
         return ({**row["scores"], **row.get("choice", {})},
                 f"bench/results/variants_clean.jsonl {row['timestamp']} (commit {row['commit'][:7]})")
 
     made: dict[str, dict[str, Any]] = {}
-    objects = sorted(p.name for p in (out / "results").iterdir() if p.is_dir()) if (out / "results").is_dir() else []
-    for obj in objects:
+    for obj in page_objects(out):
+        if obj in have:
+            continue
         found = [side(name, obj) for name in sides]
-        if obj in have or found[0] is None or found[1] is None:
+        if found[0] is None or found[1] is None:
             continue
         result = basis_choice_result(variant, found[0][0], found[1][0])
         if result is not None:
