@@ -3,7 +3,8 @@
 from both sides' stored results: what the default with basis v6's candidates joined to its choice gives, paired
 against the configured basis alone, v6 alone and the PBR baseline.
 
-    .venv/bin/python bench/basis_choice.py [--variant default_choose_v6] [--page bench/results/eval-clean]
+    .venv/bin/python bench/basis_choice.py [--variant default_choose_v6_alone] [--page bench/results/eval-clean] \\
+        [--before default_choose_v6]
 
 Each side is the plain TTO in one basis (`bench/variants_clean.py` `basis_sides`: for the default, the default of
 design note 75 in v1/v4 and `default_v6_dec`). The choice's candidates in each basis are that side's own (the same
@@ -28,9 +29,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, argument_parser, write_result  # noqa: E402
-from variants_clean import basis_choice_result, basis_sides, page_objects  # noqa: E402
+from variants_clean import basis_choice_result, basis_sides, side_results, start_stand_ins  # noqa: E402
 
 from neumatex_core.eval.suite import paired_difference, result_path  # noqa: E402
+from neumatex_core.eval.variants import DEFAULT_VARIANT  # noqa: E402
 
 # a side without Cycles rows -> the variant whose rows are its own there: the default of item 75 makes the same
 # choices as s900 on every capture (its margin 0 against 0.25; no capture's lies between)
@@ -45,20 +47,27 @@ def mean_se(values: list[float]) -> tuple[float, float]:
     return float(a.mean()), float(a.std(ddof=1) / math.sqrt(len(a))) if len(a) > 1 else math.nan
 
 
-def page_table(variant: str, sides: tuple[str, str], page: Path) -> dict[str, Any]:
+def page_table(variant: str, sides: tuple[str, str], page: Path, before: str = "") -> dict[str, Any]:
     """The choice on the benchmark objects of the evaluation in `page`: per metric, the choice's mean and its paired
-    difference against each side and PBR; how often the other basis was taken."""
-    objects = page_objects(page)
-    res: dict[str, dict[str, dict[str, float]]] = {v: {m: {} for m in PAGE_METRICS} for v in (variant, *sides, "pbr")}
+    difference against each side, PBR and (`before`: another select_basis variant, read from its own sides) that
+    choice; how often the other basis was taken."""
+    versus = (*sides, "pbr", *([before] if before else []))
+    res: dict[str, dict[str, dict[str, float]]] = {v: {m: {} for m in PAGE_METRICS} for v in (variant, *versus)}
+    before_sides = basis_sides(before) if before else None
+    earlier = side_results(before_sides, page) if before_sides else {}
     taken = 0
-    for obj in objects:
-        found = {v: result_path(page, obj, v) for v in (*sides, "pbr")}
-        if not all(path.is_file() for path in found.values()):
+    for obj, found in side_results(sides, page).items():
+        pbr = result_path(page, obj, "pbr")
+        if not pbr.is_file():
             continue
-        rows = {v: json.loads(path.read_text()) for v, path in found.items()}
+        rows = {sides[0]: found[0][0], sides[1]: found[1][0], "pbr": json.loads(pbr.read_text())}
         chosen = basis_choice_result(variant, rows[sides[0]], rows[sides[1]])
         if chosen is None:
             continue
+        if obj in earlier:
+            made = basis_choice_result(before, earlier[obj][0][0], earlier[obj][1][0])
+            if made is not None:
+                rows[before] = made
         taken += int(chosen["choice_select_basis_taken"])
         for v, row in {**rows, variant: chosen}.items():
             for m in PAGE_METRICS:
@@ -66,15 +75,15 @@ def page_table(variant: str, sides: tuple[str, str], page: Path) -> dict[str, An
                     res[v][m][obj] = float(row[m])
     n = len(res[variant][PAGE_METRICS[0]])
     print(f"\n{variant} on the benchmark objects of {page} (n={n}; {sides[1]}'s basis taken on {taken})")
-    print(f"| PSNR, dB | {variant} | " + " | ".join(f"- {b}" for b in (*sides, "pbr")) + " |")
-    print("|---" * (5) + "|")
+    print(f"| PSNR, dB | {variant} | " + " | ".join(f"- {b}" for b in versus) + " |")
+    print("|---" * (2 + len(versus)) + "|")
     table: dict[str, Any] = {"objects": n, "other_taken": taken}
     for m in PAGE_METRICS:
         cells, entry = [], {"mean": float(np.mean(list(res[variant][m].values())))}
-        for b in (*sides, "pbr"):
+        for b in versus:
             mean, se, count = paired_difference(res, variant, b, m)
             entry[b] = {"diff": mean, "se": se, "n": count}
-            cells.append(f"{mean:+.2f} +- {se:.2f}")
+            cells.append(f"{mean:+.2f} +- {se:.2f} (n={count})")
         table[m] = entry
         print(f"| {m} | {entry['mean']:.2f} | " + " | ".join(cells) + " |")
     return table
@@ -98,13 +107,22 @@ def flat(scores: dict[str, Any]) -> dict[str, Any]:
             **{f"choice_{k}": v for k, v in scores.get("selection", {}).items()}}
 
 
-def cycles_table(variant: str, sides: tuple[str, str]) -> dict[str, Any]:
-    """The choice on every Cycles capture with rows of both sides and PBR: per preset the choice minus each side and
-    minus PBR (mean +- s.e. over meshes), and which basis each capture took."""
+def cycles_table(variant: str, sides: tuple[str, str], before: str = "") -> dict[str, Any]:
+    """The choice on every Cycles capture with rows of both sides and PBR: per preset the choice minus each side,
+    minus PBR and (`before`, where its sides have rows) minus that choice (mean +- s.e. over meshes), and which
+    basis each capture took."""
     latest = cycles_latest()
-    for (capture, name), scores in list(latest.items()):  # the configured side's own rows first, else its stand-in's
-        if name == CYCLES_STAND_IN.get(sides[0]):
-            latest.setdefault((capture, sides[0]), scores)
+    before_sides = basis_sides(before) if before else None
+    for side in {*sides, *(before_sides or ())}:  # its own rows first, else its stand-in's; without the alternative
+        # basis then those of the variants that differ in it alone (or their stand-ins') where the start stayed in v1
+        starts = [n for s in start_stand_ins(side) for n in (s, CYCLES_STAND_IN.get(s)) if n]
+        for capture in {c for c, _ in latest}:
+            found = [latest.get((capture, n)) for n in (side, CYCLES_STAND_IN.get(side))] + [
+                row for n in starts if (row := latest.get((capture, n))) is not None
+                and row.get("selection", {}).get("basis_switched") == 0.0]  # fmt: skip
+            row = next((r for r in found if r is not None), None)
+            if row is not None:
+                latest[(capture, side)] = row
     own = sides[0]
     captures = sorted({c for c, v in latest if v == own} & {c for c, v in latest if v == sides[1]}
                       & {c for c, v in latest if v == "pbr"})
@@ -116,24 +134,29 @@ def cycles_table(variant: str, sides: tuple[str, str]) -> dict[str, Any]:
         if chosen is None:
             continue
         took[capture] = sides[1] if chosen["choice_select_basis_taken"] else own
+        earlier = None
+        if before_sides and all((capture, side) in latest for side in before_sides):
+            earlier = basis_choice_result(before, *(flat(latest[(capture, side)]) for side in before_sides))
         diffs = {}
         for m in CYCLES_METRICS:
             diffs[f"{m} - own"] = chosen[m] - a[m]
             diffs[f"{m} - other"] = chosen[m] - b[m]
             diffs[f"{m} - pbr"] = chosen[m] - pbr[m]
+            if earlier is not None:
+                diffs[f"{m} - before"] = chosen[m] - earlier[m]
         per.setdefault(capture.rsplit("-", 1)[-1], []).append(diffs)
     print(f"\n{variant} on the Cycles captures (clean; {own} (where it has no row, "
           f"{CYCLES_STAND_IN.get(own, own)}) and {sides[1]} the sides)")
     for capture, side in took.items():
         print(f"  {capture}: {side}")
-    keys = [f"{m} - {s}" for m in CYCLES_METRICS for s in ("own", "other", "pbr")]
+    keys = [f"{m} - {s}" for m in CYCLES_METRICS for s in ("own", "other", "pbr", *(["before"] if before else []))]
     print("| preset (captures) | " + " | ".join(keys) + " |")
     print("|---" * (1 + len(keys)) + "|")
     table: dict[str, Any] = {"took": took}
     for preset, rows in sorted(per.items()):
         cells, entry = [], {}
         for k in keys:
-            mean, se = mean_se([r[k] for r in rows])
+            mean, se = mean_se([r[k] for r in rows if k in r])
             entry[k] = {"diff": mean, "se": se}
             cells.append(f"{mean:+.2f} +- {se:.2f}")
         table[preset] = entry
@@ -143,16 +166,20 @@ def cycles_table(variant: str, sides: tuple[str, str]) -> dict[str, Any]:
 
 def main() -> int:
     parser = argument_parser(__doc__)
-    parser.add_argument("--variant", default="default_choose_v6")
+    parser.add_argument("--variant", default=DEFAULT_VARIANT)
     parser.add_argument("--page", type=Path, default=RESULTS_DIR / "eval-clean")
+    parser.add_argument("--before", default="", metavar="VARIANT", help="also pair against this select_basis "
+                        "variant, read from its own two sides (e.g. default_choose_v6, the default before)")
     args = parser.parse_args()
     sides = basis_sides(args.variant)
-    if sides is None:
-        print(f"{args.variant} has no select_basis, or no variants that are its two sides", file=sys.stderr)
-        return 2
-    record = {"variant": args.variant, "sides": list(sides), "benchmark_objects": page_table(args.variant, sides,
-                                                                                            args.page),
-              "cycles": cycles_table(args.variant, sides)}
+    for name in (args.variant, *([args.before] if args.before else [])):
+        if basis_sides(name) is None:
+            print(f"{name} has no select_basis, or no variants that are its two sides", file=sys.stderr)
+            return 2
+    assert sides is not None
+    record = {"variant": args.variant, "sides": list(sides), "before": args.before,
+              "benchmark_objects": page_table(args.variant, sides, args.page, args.before),
+              "cycles": cycles_table(args.variant, sides, args.before)}
     write_result("basis_choice", record)
     return 0
 

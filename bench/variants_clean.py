@@ -32,7 +32,9 @@ object (docs/design-notes.md items 51 and 59). With `--fill-from B,C`, where a v
 that differs from it only in the uniform/textured choice's margin and makes the same choice there stands in
 (`same_uniform_choice`, item 75). A variant that also tries another basis (`TTOConfig.select_basis`, item 80)
 with no row of its own is made from its two sides' results (the plain TTO in each basis, `basis_sides`: from OUT's
-results or this file): their recorded held-out scores decide as its TTO does (`basis_choice_result`):
+results or this file): their recorded held-out scores decide as its TTO does (`basis_choice_result`). A side
+without the alternative basis that has no result there takes that of a variant differing from it in the alternative
+alone, wherever that one's start stayed in the configured basis (`start_stand_ins`, item 81):
 
     .venv/bin/python bench/variants_clean.py --to-eval bench/results/eval-clean \\
         --variants pbr_start_default_settle_decdb
@@ -359,16 +361,26 @@ def to_eval(variants: list[str], out: Path, fill_from: Sequence[str] = ()) -> in
     return 0
 
 
-def composed_rows(variant: str, out: Path, have: set[str]) -> dict[str, dict[str, Any]]:
-    """object -> `variant`'s result made from its two sides' results (`basis_sides`, `basis_choice_result`) on the
-    objects not in `have`: each side's result from the evaluation in `out` (e.g. the default's page, its rows
-    filled in there) or else its latest row of this file."""
-    sides = basis_sides(variant)
-    if sides is None:
-        return {}
-    latest = {(r["variant"], r["object"]): r for r in own_rows() if r["variant"] in sides}
+def start_stand_ins(variant: str) -> list[str]:
+    """The variants whose results are `variant`'s wherever their start stayed in the configured basis (their record's
+    choice_basis_switched 0): `variant` has no alternative basis and they differ from it in the alternative basis
+    alone (`differs_only_in_basis`). The TTO is then the same bit for bit (tests/test_tto.py
+    `test_without_the_alternative_basis_...`, docs/design-notes.md item 81)."""
+    tto = variant_config(variant, ExtractConfig.preset("cpu").tto)
+    if tto is None or tto.alternative_basis:
+        return []
+    return [n for n in VARIANTS if n != variant and differs_only_in_basis(variant, n)]
 
-    def side(name: str, obj: str) -> tuple[dict[str, Any], str] | None:
+
+def side_results(sides: Sequence[str], out: Path) -> dict[str, list[tuple[dict[str, Any], str]]]:
+    """object -> each side's result (flat scores and choice records) and where it came from, on the objects of the
+    evaluation in `out` where every side has one: its result in `out` (e.g. the default's page, its rows filled in
+    there), else its latest row of this file, else a `start_stand_ins` variant's result or row where that one's
+    start stayed in the configured basis."""
+    names = {n for name in sides for n in (name, *start_stand_ins(name))}
+    latest = {(r["variant"], r["object"]): r for r in own_rows() if r["variant"] in names}
+
+    def own(name: str, obj: str) -> tuple[dict[str, Any], str] | None:
         path = result_path(out, obj, name)
         if path.is_file():
             return json.loads(path.read_text()), f"{out}/results/{obj}/{name}.json"
@@ -378,12 +390,31 @@ def composed_rows(variant: str, out: Path, have: set[str]) -> dict[str, dict[str
         return ({**row["scores"], **row.get("choice", {})},
                 f"bench/results/variants_clean.jsonl {row['timestamp']} (commit {row['commit'][:7]})")
 
-    made: dict[str, dict[str, Any]] = {}
+    def side(name: str, obj: str) -> tuple[dict[str, Any], str] | None:
+        found = own(name, obj)
+        for other in start_stand_ins(name) if found is None else []:
+            got = own(other, obj)
+            if got is not None and got[0].get("choice_basis_switched") == 0.0:
+                return got[0], f"{other}'s, its start in the configured basis: {got[1]}"
+        return found
+
+    found: dict[str, list[tuple[dict[str, Any], str]]] = {}
     for obj in page_objects(out):
+        each = [side(name, obj) for name in sides]
+        if all(e is not None for e in each):
+            found[obj] = [e for e in each if e is not None]
+    return found
+
+
+def composed_rows(variant: str, out: Path, have: set[str]) -> dict[str, dict[str, Any]]:
+    """object -> `variant`'s result made from its two sides' results (`basis_sides`, `basis_choice_result`,
+    `side_results`) on the objects not in `have`."""
+    sides = basis_sides(variant)
+    if sides is None:
+        return {}
+    made: dict[str, dict[str, Any]] = {}
+    for obj, found in side_results(sides, out).items():
         if obj in have:
-            continue
-        found = [side(name, obj) for name in sides]
-        if found[0] is None or found[1] is None:
             continue
         result = basis_choice_result(variant, found[0][0], found[1][0])
         if result is not None:

@@ -220,7 +220,8 @@ class ExtractConfig:
         """The TTO config with this config's init switch, seed and variation ("choose" is "textured" where there is
         no PBR start); the start anchor (reg "start") and the alternative basis only where there is a PBR start
         (init "pbr"), no anchor and the one basis otherwise; the other basis (select_basis) only where the variation
-        chooses on held-out photos ("choose"). The schedule the evaluation's variants are defined on
+        chooses on held-out photos ("choose"), and then no alternative basis (docs/design-notes.md item 81). The
+        schedule the evaluation's variants are defined on
         (eval/variants.py `variant_config`): its `steps` are `tto.steps`, not scaled."""
         variation = "textured" if self.variation == "choose" and not self.has_pbr_start() else self.variation
         tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[variation])
@@ -228,6 +229,8 @@ class ExtractConfig:
             tto = replace(tto, reg="none" if tto.reg == "start" else tto.reg, alternative_basis="")
         if not (tto.select_uniform or tto.select_anchor):  # the other basis is tried in a choice on held-out photos
             tto = replace(tto, select_basis="")
+        if tto.select_basis:  # where v6 is tried, it holds what the alternative basis's start was for (metals)
+            tto = replace(tto, alternative_basis="")
         return tto
 
     def tto_config(self) -> TTOConfig:

@@ -18,7 +18,7 @@ from tto_fixtures import EXAMPLE
 from neumatex_core.assets import read_asset
 from neumatex_core.cli import main
 from neumatex_core.lmrm import LMRMConfig, LMRMNet, save_lmrm
-from neumatex_core.materials.neural_basis import BASIS_V2, BASIS_V6, basis_latent_dim, load_basis
+from neumatex_core.materials.neural_basis import BASIS_V2, BASIS_V4, BASIS_V6, basis_latent_dim, load_basis
 from neumatex_core.pipeline import (
     STAGES,
     Cancelled,
@@ -128,7 +128,6 @@ def test_the_basis_the_tto_chose_is_the_assets_and_the_report_says_why(tmp_path,
     """TTOConfig.alternative_basis (every preset: basis v4): where the TTO takes it (forced here by a negative
     margin), the tto stage records it, the asset is exported in it and the report gives the scores that chose it;
     where it keeps the configured basis the report says so too. Without the PBR start there is nothing to choose."""
-    from neumatex_core.materials.neural_basis import BASIS_V4
 
     preset = config(tiny_lmrm, init="pbr", variation="textured")
     assert preset.tto_config().alternative_basis == BASIS_V4
@@ -158,7 +157,8 @@ def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice
     assert uniform == replace(base.tto_config(), consistency_rho_value=UNIFORM_RHO_VALUE)
     choose = config(tiny_lmrm, init="pbr", variation="choose")
     assert choose.tto_config() == replace(base.tto_config(), select_uniform=True, select_reuse_start=True,
-                                          select_basis=BASIS_V6)  # v6 tried in the choice (design note 80)
+                                          select_basis=BASIS_V6,  # v6 tried in the choice (design note 80)
+                                          alternative_basis="")  # in its place for v1's start (note 81)
     assert base.tto_config().select_basis == ""  # no choice, so the configured basis alone
     assert config(tiny_lmrm, init="pbr") == choose  # the default
     for init in ("random", "lmrm"):
@@ -483,14 +483,15 @@ def test_every_eval_table_is_described_and_valid():
     ours = variant_config("ours", base)
     assert ours is not None and (ours.reg, ours.lambda_reg, ours.lambda_consistency) == ("uncertainty", 0.02, 0.0)
     assert variant_config("pbr", base).steps == 400  # type: ignore[union-attr]
-    # the default's own variant (since the night of 2026-12-04, design note 80) is the extraction's TTO; the one
-    # before it differs only in the other basis tried, the one before that only in its choice's margin, the five
+    # the default's own variant (since 2026-12-05, design note 81) is the extraction's TTO; the one before it differs
+    # only in the alternative basis for v1's start, the one before that only in the other basis tried, the one
+    # before that only in its choice's margin, the five
     # before that only in their settling's length, the one before those also in its settling's rate, the one before
     # that also in its settling steps' loss, the one before that also in the settling phase, and the one before that
     # also in the choice's length; the variants measured against those build on them
     from neumatex_core.eval.variants import DEFAULT_VARIANT
 
-    assert DEFAULT_VARIANT == "default_choose_v6" and DEFAULT_VARIANT in TABLES["default"]
+    assert DEFAULT_VARIANT == "default_choose_v6_alone" and DEFAULT_VARIANT in TABLES["default"]
     assert variant_config(DEFAULT_VARIANT, TTOConfig.preset("cpu")) == extraction
     assert variant_config(DEFAULT_VARIANT, base) == extraction
     tiny = ExtractConfig.preset("tiny")
@@ -501,8 +502,15 @@ def test_every_eval_table_is_described_and_valid():
     assert extraction.settle_start() == 200 and extraction.select_steps() == 100
     assert extraction.select_margin_db == 0.0  # textured kept whenever it scores better on the held-out photos
     assert extraction.select_basis == BASIS_V6  # v6's candidates in the choice too (design note 80)
+    assert extraction.alternative_basis == ""  # and v1's start in v1 alone: v6 holds what v4 was there for (note 81)
+    choose_v6 = variant_config("default_choose_v6", base)
+    assert choose_v6 == replace(extraction, alternative_basis=BASIS_V4)
+    assert variant_config("default_v1", base) == replace(extraction, select_basis="")
     m0 = variant_config("pbr_start_default_settle_decdb_slr10_s900_m0", base)
-    assert m0 == replace(extraction, select_basis="")
+    assert m0 == replace(choose_v6, select_basis="")
+    for variation in ("textured", "uniform"):  # no choice on held-out photos: v1, and v4 where v1 cannot hold
+        made = ExtractConfig.preset("cpu", variation=variation).variant_base()  # the PBR start
+        assert (made.select_basis, made.alternative_basis) == ("", BASIS_V4), variation
     s900 = variant_config("pbr_start_default_settle_decdb_slr10_s900", base)
     assert s900 == replace(m0, select_margin_db=0.25)
     for forced, margin in (("uniform", 100.0), ("textured", -100.0)):  # the choice forced, for both branches
@@ -554,7 +562,7 @@ def test_every_eval_table_is_described_and_valid():
     assert frozen == replace(reuse, train_decoder=False, decoder_lr=TTOConfig().decoder_lr, select_reuse_start=False)
     textured = replace(slr10, select_uniform=False, select_reuse_start=False)
     assert ExtractConfig.preset("cpu", variation="textured").tto_config() == replace(
-        extraction, select_uniform=False, select_reuse_start=False, select_basis="")
+        extraction, select_uniform=False, select_reuse_start=False, select_basis="", alternative_basis=BASIS_V4)
     # the default before 2026-11-27's "choose" and alternative basis; the baseline runs in the one basis
     assert variant_config("pbr_start_consistent_01", base) == replace(
         textured, alternative_basis="", train_decoder=False, decoder_lr=0.1, decoder_in_other_basis=True,

@@ -1356,3 +1356,34 @@ def test_select_basis_joins_another_basis_to_the_choice_and_gives_that_basis_pla
     for bad in ({"select_uniform": False}, {"init": "lmrm"}, {"basis": BASIS_V6}, {"select_basis": "nmx-basis-v9"}):
         with pytest.raises(ValueError, match="select_basis"):
             replace(cfg, **bad).check()
+
+
+def test_without_the_alternative_basis_the_choice_is_the_same_where_the_configured_basis_holds_the_start(
+        example, truth_prediction):
+    """The default since item 81 (docs/design-notes.md) tries basis v6 beside v1 and no longer has v4 as the
+    alternative for v1's start. Where v1 holds the PBR start (the alternative not taken: here a margin no start can
+    lose by), the TTO with the alternative and without it are the same bit for bit, so the default before's results
+    stand for the new one there; only the alternative's record goes. Where the alternative is taken (any start loses
+    by more than a margin of -100 dB), v1's candidates start in v4 with it and in v1 without it."""
+    from neumatex_core.materials.neural_basis import BASIS_V4, BASIS_V6
+    from neumatex_core.tto import solve
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=0.5,
+                           select_reuse_start=True, train_decoder=True, decoder_in_other_basis=False,
+                           pbr_fit_steps=50, select_margin_db=0.0, select_basis=BASIS_V6, alternative_basis=BASIS_V4,
+                           basis_margin_db=100.0)  # fmt: skip
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2),
+            example.basis)  # fmt: skip
+    assert torch.get_num_threads() == 1  # this module's (one_thread): the evaluation's rows are made at one thread
+    with_alternative = solve(cfg, *args)
+    alone = solve(replace(cfg, alternative_basis=""), *args)
+    assert with_alternative.selection["basis_switched"] == 0.0
+    basis_keys = {k for k in with_alternative.selection if k.startswith("basis_")}
+    assert basis_keys and not basis_keys & set(alone.selection)
+    assert {k: v for k, v in with_alternative.selection.items() if k not in basis_keys} == alone.selection
+    assert torch.equal(with_alternative.params.tensor, alone.params.tensor)
+    assert (with_alternative.basis is None) == (alone.basis is None)
+    switched = solve(replace(cfg, basis_margin_db=-100.0), *args)
+    assert switched.selection["basis_switched"] == 1.0
+    assert switched.selection["validation_psnr_uniform"] != alone.selection["validation_psnr_uniform"]

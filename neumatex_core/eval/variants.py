@@ -94,9 +94,12 @@ DEFAULT_73: dict[str, Any] = {**DEFAULT_72, "select_margin_db": 0.0}
 # the extraction's default since the night of 2026-12-04 (design note 80): that one with basis v6's candidates
 # joined to its choice on held-out photos (TTOConfig.select_basis), v6 taken where its kept candidate scores better
 DEFAULT_80: dict[str, Any] = {**DEFAULT_73, "select_basis": BASIS_V6}
+# the extraction's default since 2026-12-05 (design note 81): that one without the alternative basis v4 for the
+# start in v1, which v6 replaces: v1's candidates start in v1 alone
+DEFAULT_81: dict[str, Any] = {**DEFAULT_80, "alternative_basis": ""}
 # the extraction's default (pipeline.NEURAL_FROM_PBR, ExtractConfig.neural_steps_scale and TTOConfig, which a test
 # asserts)
-EXTRACTION_DEFAULT: dict[str, Any] = DEFAULT_80
+EXTRACTION_DEFAULT: dict[str, Any] = DEFAULT_81
 
 VARIANTS: dict[str, dict[str, Any]] = {
     "ours": OURS,
@@ -349,6 +352,13 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # +0.87 +- 0.21 and Relight +1.13 +- 0.29 over the default; on the 16 Cycles captures it keeps v1 on every sheen
     # (relit: sheen +0.00, coat -0.27 +- 0.42, metal +1.85 +- 0.73, diffuse +1.00 +- 1.64; design note 80)
     "default_choose_v6": DEFAULT_80,
+    # ... the default in basis v1 alone (no alternative basis for its start): default_choose_v6_alone's side in v1
+    "default_v1": {**DEFAULT_73, "alternative_basis": ""},
+    # ... default_choose_v6 without the alternative basis v4 for the start in v1: v6 holds the metals v4 was there
+    # for. Where v1 holds the PBR start (31 of 40 objects) it is default_choose_v6 bit for bit; where v4 was taken
+    # (8 objects, 6 Cycles captures) v1's candidates start in v1 itself. The extraction's default since 2026-12-05
+    # (design note 81)
+    "default_choose_v6_alone": DEFAULT_81,
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
     # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
     # the truth on object 0 PathTrace 36.62 / 36.14 against the default's 36.63 (0.3 instead: 35.89): not run from
@@ -451,7 +461,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
 # The variant that is the extraction's default (pipeline.NEURAL_FROM_PBR and TTOConfig; a test asserts it): the
 # product's row of `neumatex eval` (table "default") and of issue 14's targets. A fixed config under a fixed name, so
 # stored results never change meaning; when the default changes, its new variant is added and named here.
-DEFAULT_VARIANT = "default_choose_v6"
+DEFAULT_VARIANT = "default_choose_v6_alone"
 
 PAPER_TABLES = ("table1", "table2", "table3")  # the paper's tables (its orderings are checked on them)
 TABLES: dict[str, list[str]] = {
