@@ -95,7 +95,10 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # kept candidate scores better on the held-out photos (select_basis): over the plain TTO in v1/v4, on all 40
 # objects, clean, PathTrace +0.89 +- 0.21 and Relight +1.13 +- 0.29 dB, and on the 16 Cycles captures it keeps v1
 # on every sheen (which v6 alone loses by 4.9 dB) and takes v6 on most metals (relit +1.85 +- 0.73); 200 neural
-# steps more, a start fit more (item 80).
+# steps more, a start fit more (item 80). With v6 in that choice, v1's start has no alternative basis (v4 stays for
+# the variations that make no choice, `ExtractConfig.variant_base`): v6 holds the metals v4 was there for, and
+# without v4 the demo is 14-16 s faster, all 40 objects PathTrace +0.03 +- 0.02 and the Cycles metals relit +0.54
+# (item 81).
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
                                    "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
                                    "decoder_in_other_basis": False, "settle_fraction": 7 / 9, "select_fraction": 1 / 9,

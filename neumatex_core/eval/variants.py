@@ -355,9 +355,10 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # ... the default in basis v1 alone (no alternative basis for its start): default_choose_v6_alone's side in v1
     "default_v1": {**DEFAULT_73, "alternative_basis": ""},
     # ... default_choose_v6 without the alternative basis v4 for the start in v1: v6 holds the metals v4 was there
-    # for. Where v1 holds the PBR start (31 of 40 objects) it is default_choose_v6 bit for bit; where v4 was taken
-    # (8 objects, 6 Cycles captures) v1's candidates start in v1 itself. The extraction's default since 2026-12-05
-    # (design note 81)
+    # for. Where v1 holds the PBR start (32 of 40 objects, 10 of 16 Cycles captures) it is default_choose_v6 bit for
+    # bit; where v4 was taken v1's candidates start in v1 itself. Over default_choose_v6 on all 40 objects PathTrace
+    # +0.03 +- 0.02, Relight +0.05 +- 0.03; Cycles relit metal +0.54 +- 0.54, the rest within 0.03; the demo 14-16 s
+    # faster. The extraction's default since 2026-12-05 (design note 81)
     "default_choose_v6_alone": DEFAULT_81,
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
     # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
