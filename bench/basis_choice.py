@@ -6,8 +6,10 @@ against the configured basis alone, v6 alone and the PBR baseline.
     .venv/bin/python bench/basis_choice.py [--variant default_choose_v6_alone] [--page bench/results/eval-clean] \\
         [--before default_choose_v6]
 
-Each side is the plain TTO in one basis (`bench/variants_clean.py` `basis_sides`: for the default, the default of
-design note 75 in v1/v4 and `default_v6_dec`). The choice's candidates in each basis are that side's own (the same
+Each side is the plain TTO in one basis (`bench/variants_clean.py` `basis_sides`: for the default, `default_v1`
+and `default_v6_dec`; a side without the alternative basis takes the rows of a variant that differs from it in the
+alternative alone wherever that one's start stayed in v1, `start_stand_ins`: for default_v1 the default of design
+note 75, item 81). The choice's candidates in each basis are that side's own (the same
 PBR phase, start and candidate steps, bit for bit: tests/test_tto.py), so each side's recorded held-out scores decide
 as the TTO does (`basis_choice_result`), and the chosen side's scores are the choice's. On the benchmark's 40 objects
 both sides come from the evaluation in --page (the default's page and default_v6_dec's rows written into it); on
@@ -145,8 +147,9 @@ def cycles_table(variant: str, sides: tuple[str, str], before: str = "") -> dict
             if earlier is not None:
                 diffs[f"{m} - before"] = chosen[m] - earlier[m]
         per.setdefault(capture.rsplit("-", 1)[-1], []).append(diffs)
+    stand_ins = [n for n in (CYCLES_STAND_IN.get(own), *start_stand_ins(own)) if n]
     print(f"\n{variant} on the Cycles captures (clean; {own} (where it has no row, "
-          f"{CYCLES_STAND_IN.get(own, own)}) and {sides[1]} the sides)")
+          f"{' or '.join(stand_ins) or 'none'}) and {sides[1]} the sides)")
     for capture, side in took.items():
         print(f"  {capture}: {side}")
     keys = [f"{m} - {s}" for m in CYCLES_METRICS for s in ("own", "other", "pbr", *(["before"] if before else []))]
