@@ -95,16 +95,19 @@ RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when n
 # kept candidate scores better on the held-out photos (select_basis): over the plain TTO in v1/v4, on all 40
 # objects, clean, PathTrace +0.89 +- 0.21 and Relight +1.13 +- 0.29 dB, and on the 16 Cycles captures it keeps v1
 # on every sheen (which v6 alone loses by 4.9 dB) and takes v6 on most metals (relit +1.85 +- 0.73); 200 neural
-# steps more, a start fit more (item 80). With v6 in that choice, v1's start has no alternative basis (v4 stays for
-# the variations that make no choice, `ExtractConfig.variant_base`): v6 holds the metals v4 was there for, and
-# without v4 the demo is 14-16 s faster, all 40 objects PathTrace +0.03 +- 0.02 and the Cycles metals relit +0.54
-# (item 81).
+# steps more, a start fit more (item 80). With v6 in that choice, v1's start has no alternative basis: v6 holds the
+# metals v4 was there for, and without v4 the demo is 14-16 s faster, all 40 objects PathTrace +0.03 +- 0.02 and the
+# Cycles metals relit +0.54 (item 81). Where no other basis is tried (ALTERNATIVE_BASIS) v4 stays.
 NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_consistency": 0.1,
-                                   "alternative_basis": BASIS_V4, "train_decoder": True, "decoder_lr": 0.001,
+                                   "train_decoder": True, "decoder_lr": 0.001,
                                    "decoder_in_other_basis": False, "settle_fraction": 7 / 9, "select_fraction": 1 / 9,
                                    "settle_photo_loss": "decorrelated_debiased", "settle_lr": 1.0,
                                    "select_margin_db": 0.0, "select_basis": BASIS_V6}
 NEURAL_STEPS_SCALE = 2.25  # ExtractConfig.neural_steps_scale's default (above)
+# The start's alternative basis where the TTO tries no other basis on held-out photos (no select_basis: the
+# variations textured and uniform, which make no choice) and its config names none: v1 cannot hold a coloured metal's
+# PBR solution, v4 can (docs/design-notes.md items 38, 81)
+ALTERNATIVE_BASIS = BASIS_V4
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
 # into a uniform material's base colour (Cycles captures, relit - PBR: sheen +2.09, coat +3.71 dB, against +1.26,
@@ -221,19 +224,20 @@ class ExtractConfig:
 
     def variant_base(self) -> TTOConfig:
         """The TTO config with this config's init switch, seed and variation ("choose" is "textured" where there is
-        no PBR start); the start anchor (reg "start") and the alternative basis only where there is a PBR start
-        (init "pbr"), no anchor and the one basis otherwise; the other basis (select_basis) only where the variation
-        chooses on held-out photos ("choose"), and then no alternative basis (docs/design-notes.md item 81). The
-        schedule the evaluation's variants are defined on
-        (eval/variants.py `variant_config`): its `steps` are `tto.steps`, not scaled."""
+        no PBR start). The other basis (select_basis) only where the variation chooses on held-out photos
+        ("choose"); where no other basis is tried, the start's alternative basis is ALTERNATIVE_BASIS unless the TTO
+        config names one (docs/design-notes.md item 81). The start anchor (reg "start") and the alternative basis
+        only where there is a PBR start (init "pbr"), no anchor and the one basis otherwise. The schedule the
+        evaluation's variants are defined on (eval/variants.py `variant_config`): its `steps` are `tto.steps`, not
+        scaled."""
         variation = "textured" if self.variation == "choose" and not self.has_pbr_start() else self.variation
         tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[variation])
+        if not (tto.select_uniform or tto.select_anchor):  # no choice on held-out photos to try the other basis in
+            tto = replace(tto, select_basis="")
+        if not tto.select_basis:  # v6 not tried: v4 where v1 cannot hold the PBR solution
+            tto = replace(tto, alternative_basis=tto.alternative_basis or ALTERNATIVE_BASIS)
         if tto.init != "pbr":  # the anchor to the start and the alternative basis's start need the PBR start
             tto = replace(tto, reg="none" if tto.reg == "start" else tto.reg, alternative_basis="")
-        if not (tto.select_uniform or tto.select_anchor):  # the other basis is tried in a choice on held-out photos
-            tto = replace(tto, select_basis="")
-        if tto.select_basis:  # where v6 is tried, it holds what the alternative basis's start was for (metals)
-            tto = replace(tto, alternative_basis="")
         return tto
 
     def tto_config(self) -> TTOConfig:

@@ -159,6 +159,9 @@ def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice
     assert choose.tto_config() == replace(base.tto_config(), select_uniform=True, select_reuse_start=True,
                                           select_basis=BASIS_V6,  # v6 tried in the choice (design note 80)
                                           alternative_basis="")  # in its place for v1's start (note 81)
+    for tto, alternative in ((replace(choose.tto, alternative_basis=BASIS_V2), BASIS_V2),  # named: kept beside v6
+                             (replace(choose.tto, select_basis=""), BASIS_V4)):  # v6 not tried: v4 for the start
+        assert config(tiny_lmrm, init="pbr", tto=tto).tto_config().alternative_basis == alternative
     assert base.tto_config().select_basis == ""  # no choice, so the configured basis alone
     assert config(tiny_lmrm, init="pbr") == choose  # the default
     for init in ("random", "lmrm"):
