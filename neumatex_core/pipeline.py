@@ -104,9 +104,9 @@ NEURAL_FROM_PBR: dict[str, Any] = {"reg": "start", "lambda_reg": 0.0, "lambda_co
                                    "settle_photo_loss": "decorrelated_debiased", "settle_lr": 1.0,
                                    "select_margin_db": 0.0, "select_basis": BASIS_V6}
 NEURAL_STEPS_SCALE = 2.25  # ExtractConfig.neural_steps_scale's default (above)
-# The start's alternative basis where the TTO tries no other basis on held-out photos (no select_basis: the
-# variations textured and uniform, which make no choice) and its config names none: v1 cannot hold a coloured metal's
-# PBR solution, v4 can (docs/design-notes.md items 38, 81)
+# The start's alternative basis where the TTO runs in the default basis (v1), tries no other basis on held-out photos
+# (no select_basis: the variations textured and uniform, which make no choice) and its config names none: v1 cannot
+# hold a coloured metal's PBR solution, v4 can (docs/design-notes.md items 38, 81)
 ALTERNATIVE_BASIS = BASIS_V4
 # ExtractConfig.variation: what each says about the object's surface sets in the TTO config. "uniform" also compares
 # the base colours' values of points that start alike, which removes the capture's light that the PBR phase painted
@@ -225,17 +225,17 @@ class ExtractConfig:
     def variant_base(self) -> TTOConfig:
         """The TTO config with this config's init switch, seed and variation ("choose" is "textured" where there is
         no PBR start). The other basis (select_basis) only where the variation chooses on held-out photos
-        ("choose"); where no other basis is tried, the start's alternative basis is ALTERNATIVE_BASIS unless the TTO
-        config names one (docs/design-notes.md item 81). The start anchor (reg "start") and the alternative basis
-        only where there is a PBR start (init "pbr"), no anchor and the one basis otherwise. The schedule the
-        evaluation's variants are defined on (eval/variants.py `variant_config`): its `steps` are `tto.steps`, not
-        scaled."""
+        ("choose"); where the TTO runs in the default basis and no other basis is tried, the start's alternative
+        basis is ALTERNATIVE_BASIS unless the TTO config names one (docs/design-notes.md item 81). The start anchor
+        (reg "start") and the alternative basis only where there is a PBR start (init "pbr"), no anchor and the one
+        basis otherwise. The schedule the evaluation's variants are defined on (eval/variants.py `variant_config`):
+        its `steps` are `tto.steps`, not scaled."""
         variation = "textured" if self.variation == "choose" and not self.has_pbr_start() else self.variation
         tto = replace(self.tto, init=self.init, seed=self.seed, **VARIATIONS[variation])
         if not (tto.select_uniform or tto.select_anchor):  # no choice on held-out photos to try the other basis in
             tto = replace(tto, select_basis="")
-        if not tto.select_basis:  # v6 not tried: v4 where v1 cannot hold the PBR solution
-            tto = replace(tto, alternative_basis=tto.alternative_basis or ALTERNATIVE_BASIS)
+        if not (tto.select_basis or tto.basis):  # the default basis, v6 not tried: v4 where it cannot hold the PBR
+            tto = replace(tto, alternative_basis=tto.alternative_basis or ALTERNATIVE_BASIS)  # solution
         if tto.init != "pbr":  # the anchor to the start and the alternative basis's start need the PBR start
             tto = replace(tto, reg="none" if tto.reg == "start" else tto.reg, alternative_basis="")
         return tto
