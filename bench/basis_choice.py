@@ -31,7 +31,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS_DIR, argument_parser, write_result  # noqa: E402
-from variants_clean import basis_choice_result, basis_sides, side_results, start_stand_ins  # noqa: E402
+from variants_clean import (  # noqa: E402
+    basis_choice_result,
+    basis_sides,
+    side_results,
+    start_stand_ins,
+    start_stayed,
+)
 
 from neumatex_core.eval.suite import paired_difference, result_path  # noqa: E402
 from neumatex_core.eval.variants import DEFAULT_VARIANT  # noqa: E402
@@ -120,8 +126,7 @@ def cycles_table(variant: str, sides: tuple[str, str], before: str = "") -> dict
         starts = [n for s in start_stand_ins(side) for n in (s, CYCLES_STAND_IN.get(s)) if n]
         for capture in {c for c, _ in latest}:
             found = [latest.get((capture, n)) for n in (side, CYCLES_STAND_IN.get(side))] + [
-                row for n in starts if (row := latest.get((capture, n))) is not None
-                and row.get("selection", {}).get("basis_switched") == 0.0]  # fmt: skip
+                row for n in starts if (row := latest.get((capture, n))) is not None and start_stayed(flat(row))]
             row = next((r for r in found if r is not None), None)
             if row is not None:
                 latest[(capture, side)] = row

@@ -372,12 +372,19 @@ def start_stand_ins(variant: str) -> list[str]:
     return [n for n in VARIANTS if n != variant and differs_only_in_basis(variant, n)]
 
 
+def start_stayed(result: dict[str, Any]) -> bool:
+    """Whether a result (flat scores and choice records) records its start in the configured basis: then it stands
+    for its `start_stand_ins` variants' result."""
+    return result.get("choice_basis_switched") == 0.0
+
+
 def side_results(sides: Sequence[str], out: Path) -> dict[str, list[tuple[dict[str, Any], str]]]:
     """object -> each side's result (flat scores and choice records) and where it came from, on the objects of the
     evaluation in `out` where every side has one: its result in `out` (e.g. the default's page, its rows filled in
     there), else its latest row of this file, else a `start_stand_ins` variant's result or row where that one's
     start stayed in the configured basis."""
-    names = {n for name in sides for n in (name, *start_stand_ins(name))}
+    stand_ins = {name: start_stand_ins(name) for name in sides}
+    names = {n for name in sides for n in (name, *stand_ins[name])}
     latest = {(r["variant"], r["object"]): r for r in own_rows() if r["variant"] in names}
 
     def own(name: str, obj: str) -> tuple[dict[str, Any], str] | None:
@@ -392,9 +399,9 @@ def side_results(sides: Sequence[str], out: Path) -> dict[str, list[tuple[dict[s
 
     def side(name: str, obj: str) -> tuple[dict[str, Any], str] | None:
         found = own(name, obj)
-        for other in start_stand_ins(name) if found is None else []:
+        for other in stand_ins[name] if found is None else []:
             got = own(other, obj)
-            if got is not None and got[0].get("choice_basis_switched") == 0.0:
+            if got is not None and start_stayed(got[0]):
                 return got[0], f"{other}'s, its start in the configured basis: {got[1]}"
         return found
 
