@@ -5,10 +5,12 @@ For every capture (a Cycles capture, runs/cycles/<mesh>-<preset>, or a benchmark
 as the extraction's default does before its neural phase: the PBR phase of the cpu preset on all photos but the 4
 held out (`validation_frames`), then its solution fitted into the neural triplane (`fit_start_to_pbr`, no neural
 step) in each installed basis, and the PBR solution and every start scored on the held-out photos with the clean
-estimator `photo_psnr` (one seed, so all share their random numbers). The extraction's rule
-(`TTOConfig.alternative_basis`, `tto/pbr_start.py` `alternative_wins`) takes the alternative basis where the default
-basis's start is more than the preset's margin (3 dB) below PBR and the alternative's more than that above the
-default's; the last column says what it takes. One JSON line per capture in bench/results/basis_start.jsonl (a
+estimator `photo_psnr` (one seed, so all share their random numbers). The start's rule (`TTOConfig.alternative_basis`,
+`tto/pbr_start.py` `alternative_wins`) takes the alternative basis (the config's, else `pipeline.ALTERNATIVE_BASIS`)
+where the default basis's start is more than the preset's margin (3 dB) below PBR and the alternative's more than
+that above the default's; the last column says what it takes. The extraction applies that rule only where no other
+basis is tried on the held-out photos (variation textured or uniform; the default "choose" tries basis v6 there
+instead: docs/design-notes.md, item 81). One JSON line per capture in bench/results/basis_start.jsonl (a
 stopped run keeps the finished ones).
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/basis_start.py runs/cycles/teapot-{metal,coat} \\
@@ -31,6 +33,8 @@ from common import argument_parser, prepared_capture, write_result  # noqa: E402
 
 from neumatex_core.eval.references import harness_envmap  # noqa: E402
 from neumatex_core.materials.neural_basis import installed_bases, load_basis  # noqa: E402
+from neumatex_core.pipeline import ALTERNATIVE_BASIS  # noqa: E402
+from neumatex_core.tto.config import TTOConfig  # noqa: E402
 from neumatex_core.tto.optimise import build_problem  # noqa: E402
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane  # noqa: E402
 from neumatex_core.tto.pbr_start import (  # noqa: E402
@@ -48,6 +52,13 @@ def work_dir(capture: Path) -> Path:
     return Path(root) / capture.name
 
 
+def start_config(tto: TTOConfig) -> TTOConfig:
+    """The problem each basis's start is fitted in: the extraction's TTO `tto` without its choices, anchor or
+    alternative basis (init "lmrm": the start is fitted by hand, `fit_start_to_pbr`)."""
+    return replace(tto, init="lmrm", basis="", reg="none", select_uniform=False, select_anchor=False, select_basis="",
+                   alternative_basis="")  # fmt: skip
+
+
 def score_capture(capture: Path) -> dict[str, Any]:
     """{"capture", "pbr": dB, <basis id>: dB of its start, "takes": the basis the extraction's rule takes}."""
     config, pred, cap, mesh, photos = prepared_capture(capture, work_dir(capture))
@@ -60,7 +71,7 @@ def score_capture(capture: Path) -> dict[str, Any]:
     row: dict[str, Any] = {"capture": str(capture),
                            "pbr": photo_psnr(first.params, first.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
                                              tto.seed + 1)}  # fmt: skip
-    starts = replace(tto, init="lmrm", basis="", reg="none", select_uniform=False, alternative_basis="")
+    starts = start_config(tto)
     for basis_id in installed_bases():
         basis = load_basis(basis_id=basis_id)
         problem = build_problem(starts, mesh, envmap, fit, cap.tonemap, pred, basis, True)
@@ -69,8 +80,9 @@ def score_capture(capture: Path) -> dict[str, Any]:
                          tto.pbr_bsdf_fit_steps, tto.pbr_fit_lr, tto.pbr_fit_batch)  # fmt: skip
         row[basis_id] = photo_psnr(problem.params, problem.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
                                    tto.seed + 1)  # fmt: skip
-    wins = alternative_wins(row["pbr"], row[load_basis().basis_id], row[tto.alternative_basis], tto.basis_margin_db)
-    row["takes"] = tto.alternative_basis if wins else "default"
+    alternative = tto.alternative_basis or ALTERNATIVE_BASIS
+    wins = alternative_wins(row["pbr"], row[load_basis().basis_id], row[alternative], tto.basis_margin_db)
+    row["takes"] = alternative if wins else "default"
     row["seconds"] = time.perf_counter() - t0
     return row
 

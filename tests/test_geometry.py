@@ -44,6 +44,10 @@ def test_surface_samples_are_area_uniform_and_carry_uvs():
     again, _ = mesh.sample_surface(n, seed=5)
     assert torch.equal(points, again) and mesh.flat().sample_surface(4)[1] is not None
     assert Mesh(v, mesh.faces).sample_surface(4)[1] is None
+    # the same points with the faces they lie on (face 0 holds x >= 0, face 1 x <= 0)
+    same, faces = mesh.sample_surface_faces(n, seed=5)
+    assert torch.equal(same, points) and faces.dtype == torch.int64 and faces.shape == (n,)
+    assert bool((faces[points[:, 0] > 0] == 0).all()) and bool((faces[points[:, 0] < 0] == 1).all())
 
 
 def test_broken_meshes_are_rejected_with_file_name(tmp_path):

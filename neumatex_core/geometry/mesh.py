@@ -105,6 +105,12 @@ class Mesh:
         uv = self.uvs[self.faces[tri]].astype(np.float64)
         return points, torch.from_numpy((b[:, :, None] * uv).sum(1).astype(np.float32))
 
+    def sample_surface_faces(self, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+        """The points of `sample_surface(n, seed)` [n, 3] float32 and the faces they lie on [n] int64 (e.g. for a
+        field whose values are per face, like a synthetic object's regions)."""
+        tri, _, positions = self._area_samples(n, seed)
+        return torch.from_numpy(positions.astype(np.float32)), torch.from_numpy(tri.astype(np.int64))
+
     def sample_surface_normals(self, n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         """The points of `sample_surface(n, seed)` [n, 3] and their unit shading normals [n, 3] (interpolated
         vertex normals, else the face's), float32."""
