@@ -89,17 +89,21 @@ class SeedMixture(MaterialField):
     def __init__(self, fields_: list[TriplaneMaterialField]) -> None:
         self.fields = fields_
 
+    def each(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(rho_d [F, N, 3], latent [F, N, K]): every field's G-buffers at points [N, 3]."""
+        rho, latent = zip(*(f.gbuffer(points) for f in self.fields), strict=True)
+        return torch.stack(rho), torch.stack(latent)
+
     def gbuffer(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(rho_d [N, 3], latent [N, K]): the fields' means at points [N, 3]."""
-        rho, latent = zip(*(f.gbuffer(points) for f in self.fields), strict=True)
-        return torch.stack(rho).mean(0), torch.stack(latent).mean(0)
+        rho, latent = self.each(points)
+        return rho.mean(0), latent.mean(0)
 
     def at(self, si: SurfaceInteraction) -> NeuralMaterial:
-        rho, latent = zip(*(f.gbuffer(si.position) for f in self.fields), strict=True)
+        rho, latent = self.each(si.position)
         pick = torch.randint(0, len(self.fields), (si.position.shape[0],), device=si.position.device)
         take = pick[None, :, None] == torch.arange(len(self.fields), device=pick.device)[:, None, None]
-        return NeuralMaterial(self.fields[0].basis, (torch.stack(rho) * take).sum(0),
-                              (torch.stack(latent) * take).sum(0))  # fmt: skip
+        return NeuralMaterial(self.fields[0].basis, (rho * take).sum(0), (latent * take).sum(0))
 
 
 def common_share(single_mse: list[float], mean_mse: float) -> float:
