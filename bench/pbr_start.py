@@ -33,7 +33,7 @@ from neumatex_core.materials.field import MaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial, load_basis  # noqa: E402
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural  # noqa: E402
 from neumatex_core.tto.config import TTOConfig  # noqa: E402
-from neumatex_core.tto.optimise import build_problem, optimise  # noqa: E402
+from neumatex_core.tto.optimise import build_problem, decoder_for, optimise  # noqa: E402
 from neumatex_core.tto.params import NeuralTriplane, PBRTriplane  # noqa: E402
 from neumatex_core.tto.pbr_start import FIT_POINTS, fit_planes, refine_to_pbr_bsdf  # noqa: E402
 
@@ -79,7 +79,8 @@ def bench_object(object_dir: Path, work: Path, fit_steps: list[int], bsdf_steps:
     for steps in fit_steps:
         for refine in bsdf_steps:
             planes = pred.triplane.planes.detach().clone().requires_grad_(True)
-            neural = NeuralTriplane(Triplane.from_planes(planes), copy.deepcopy(pred.material_decoder), basis)
+            decoder = copy.deepcopy(decoder_for(pred.material_decoder, basis))  # resized for a basis of another size
+            neural = NeuralTriplane(Triplane.from_planes(planes), decoder, basis)
             t0 = time.perf_counter()
             mse = fit_planes(neural, points, rho, latent, 0, steps)
             bsdf_loss = refine_to_pbr_bsdf(neural, basis, points, v, 0, refine) if refine else None

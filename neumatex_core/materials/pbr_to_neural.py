@@ -4,16 +4,12 @@ The layered material contains PBR (docs/design-notes.md, "neural from PBR"): its
 r and RGB F0 is UE4's GGX lobe, and with dust, fuzz, coat, haze and scatter switched off only that layer lies over
 the Lambertian base. So a PBR point (base colour b, roughness r, metallic m) maps to
 
-    spec_roughness = r,  spec_f0 = 0.04 (1 - m) + b m,  every other layer weight 0 (its other parameters at the
-    prior's neutral values, materials/prior.py `neutral_parameters`),
+    spec_roughness = r,  spec_f0 = 0.04 (1 - m) + b m,  every other layer weight 0,
     rho_d = b (1 - m) / T(wo_ref)
 
 where T is the basis's transmission albedo under that specular layer (albedo scaling darkens the base by it,
 PBR's Lambert term does not), taken at a 45-degree viewer direction and clamped so rho_d stays in [0, 1]. The
-latent is the basis encoder of those 22 parameters. This is how the neural TTO starts from a PBR fit. The
-switched-off layers' parameters do not change the layered BSDF but do change the latent: at the values the encoder
-was trained on (and the synthetic truth is written with) the basis renders the start closer to PBR (docs/design-notes.md
-item 83).
+latent is the basis encoder of those 22 parameters. This is how the neural TTO starts from a PBR fit.
 """
 
 from __future__ import annotations
@@ -22,15 +18,24 @@ import math
 
 import torch
 
-from neumatex_core.materials.layered import INDEX
+from neumatex_core.materials.layered import INDEX, N_PARAMS
 from neumatex_core.materials.neural_basis import NeuralBasis
 from neumatex_core.materials.pbr import DIELECTRIC_F0
-from neumatex_core.materials.prior import neutral_parameters
+
+# parameters of switched-off layers: mid-range values, the rest zero. Not the prior's neutral values
+# (materials/prior.py `_neutral`, which the encoder was trained on and the synthetic truth is written with):
+# at those the basis renders the start closer to PBR (v1 holds a metal's PBR solution, -0.03 dB against -9.98 on
+# benchmark object 1), but the default's TTO ends no better from it (10 objects: PathTrace clean -0.21 +- 0.16,
+# Latents -1.30 +- 0.73 dB; docs/design-notes.md item 83)
+NEUTRAL = {"scatter_anisotropy": 0.5, "coat_ior": 0.5}
 
 
 def pbr_layered_params(base_color: torch.Tensor, roughness: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
     """[N, 22] normalised layered parameters of PBR points: base_color [N, 3] in [0, 1], roughness, metallic [N]."""
-    params = neutral_parameters(base_color.shape[0]).to(base_color.device, base_color.dtype)
+    n = base_color.shape[0]
+    params = torch.zeros(n, N_PARAMS, device=base_color.device, dtype=base_color.dtype)
+    for name, value in NEUTRAL.items():
+        params[:, INDEX[name]] = value
     m = metallic.unsqueeze(-1)
     f0 = DIELECTRIC_F0 * (1 - m) + base_color * m
     params[:, INDEX["spec_roughness"]] = roughness

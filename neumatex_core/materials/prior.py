@@ -50,10 +50,8 @@ def _hue_color(n: int, sat_lo: float, sat_hi: float, val_lo: float, val_hi: floa
     return v.unsqueeze(-1) * (1 - s.unsqueeze(-1) * torch.clamp(torch.minimum(k, 4 - k), 0, 1))
 
 
-def neutral_parameters(n: int) -> torch.Tensor:
-    """[n, 22]: every optional layer off, colours and tints white, mid roughness, dielectric f0 0.04. The values of
-    the switched-off layers' parameters are those the basis encoder was trained on (every family starts here), so
-    a material with a layer off is encoded the way the synthetic data's truth is (materials/pbr_to_neural.py)."""
+def _neutral(n: int) -> torch.Tensor:
+    """[n, 22]: every optional layer off, colours and tints white, mid roughness, dielectric f0 0.04."""
     p = torch.zeros(n, N_PARAMS)
     for name in ("fuzz_color", "coat_tint"):
         _set_rgb(p, name, torch.ones(n, 3))
@@ -84,7 +82,7 @@ def sample_parameters(family: str, n: int, generator: torch.Generator) -> torch.
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; expected one of {FAMILIES}")
     g = generator
-    p = neutral_parameters(n)
+    p = _neutral(n)
     metal = torch.rand(n, generator=g) < 0.5
     if family == "plastic":
         _plastic(p, g)
@@ -92,7 +90,7 @@ def sample_parameters(family: str, n: int, generator: torch.Generator) -> torch.
         _metal(p, g)
     elif family in ("coated", "hazy"):
         _plastic(p, g)
-        q = neutral_parameters(n)
+        q = _neutral(n)
         _metal(q, g)
         p = torch.where(metal.unsqueeze(-1), q, p)
         if family == "coated":
