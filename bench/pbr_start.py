@@ -29,6 +29,7 @@ from common import argument_parser, prepared_capture, write_result  # noqa: E402
 from neumatex_core.eval.references import clean_metrics, harness_envmap  # noqa: E402
 from neumatex_core.fields.triplane import Triplane  # noqa: E402
 from neumatex_core.geometry.surface import SurfaceInteraction  # noqa: E402
+from neumatex_core.lmrm.inference import LMRMPrediction  # noqa: E402
 from neumatex_core.materials.field import MaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial, load_basis  # noqa: E402
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural  # noqa: E402
@@ -51,6 +52,14 @@ class PerPointConversion(MaterialField):
         v = self.pbr.gbuffer(si.position, None)
         rho, latent = pbr_to_neural(self.basis, v[:, :3], v[:, 3], v[:, 4])
         return NeuralMaterial(self.basis, rho, latent)
+
+
+def start_triplane(pred: LMRMPrediction, basis: NeuralBasis) -> NeuralTriplane:
+    """A trainable copy of the LMRM's planes read through a copy of its material decoder, resized where `basis` has
+    another latent size (`decoder_for`, as the extraction's start does): what `fit_planes` fits to the PBR
+    solution."""
+    planes = pred.triplane.planes.detach().clone().requires_grad_(True)
+    return NeuralTriplane(Triplane.from_planes(planes), copy.deepcopy(decoder_for(pred.material_decoder, basis)), basis)
 
 
 def bench_object(object_dir: Path, work: Path, fit_steps: list[int], bsdf_steps: list[int],
@@ -78,9 +87,7 @@ def bench_object(object_dir: Path, work: Path, fit_steps: list[int], bsdf_steps:
     out["fits"] = []
     for steps in fit_steps:
         for refine in bsdf_steps:
-            planes = pred.triplane.planes.detach().clone().requires_grad_(True)
-            decoder = copy.deepcopy(decoder_for(pred.material_decoder, basis))  # resized for a basis of another size
-            neural = NeuralTriplane(Triplane.from_planes(planes), decoder, basis)
+            neural = start_triplane(pred, basis)
             t0 = time.perf_counter()
             mse = fit_planes(neural, points, rho, latent, 0, steps)
             bsdf_loss = refine_to_pbr_bsdf(neural, basis, points, v, 0, refine) if refine else None

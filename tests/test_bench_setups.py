@@ -2,7 +2,7 @@
 bench/basis_start.py) must stay valid TTO configs as the default changes (the default's held-out choice of a second
 basis once made both refuse to start), and the fixed-point benchmark's image-space mean of several seeds' results
 and its share of the error the seeds have in common are what their docstrings say (docs/design-notes.md, items 49,
-82)."""
+82); bench/pbr_start.py's start reads a basis of any latent size (item 83)."""
 
 from __future__ import annotations
 
@@ -89,3 +89,25 @@ def test_the_share_the_seeds_have_in_common_inverts_the_error_model() -> None:
         assert common_share(singles, c2 + s2 / k) == pytest.approx(c2 / (c2 + s2))
     assert common_share([2e-4, 2e-4], 1e-4) == pytest.approx(0.0)  # independent errors: halved by two seeds
     assert common_share([2e-4, 2e-4], 2e-4) == pytest.approx(1.0)  # the same error every time
+
+
+def test_the_pbr_start_benchmark_reads_a_basis_of_another_latent_size_through_a_resized_decoder() -> None:
+    """bench/pbr_start.py fits the LMRM's planes through its material decoder; for basis v6 (16 latent numbers,
+    the LMRM's decoder gives 6) the G-buffer must have v6's size, and fitting it must leave the prediction as it
+    was (it read the LMRM's 6 and failed on a size mismatch until 2026-12-05)."""
+    from neumatex_core.fields.decoders import PBRDecoder, UncertaintyDecoder
+    from neumatex_core.lmrm.inference import LMRMPrediction
+    from neumatex_core.materials.neural_basis import BASIS_V6
+
+    if BASIS_V6 not in installed_bases():
+        pytest.skip("basis v6 is not installed")
+    basis = load_basis(basis_id=BASIS_V6)
+    triplane = Triplane(channels=4, resolution=8, generator=torch.Generator().manual_seed(0))
+    features = 3 * triplane.channels
+    pred = LMRMPrediction(triplane, MaterialDecoder(features), UncertaintyDecoder(features), PBRDecoder(features))
+    before = triplane.planes.detach().clone()
+    neural = bench_module("pbr_start").start_triplane(pred, basis)
+    points = torch.rand(5, 3) * 2 - 1
+    assert neural.gbuffer(points, None).shape == (5, 3 + basis.arch.latent_dim)
+    neural.tensor.data.add_(1.0)
+    assert torch.equal(triplane.planes.detach(), before)
