@@ -17,7 +17,10 @@ G-buffers (positions at pixel centres). Measured in the same run:
 - uncertainty calibration on the raw G-buffer (rho_d, l), per pixel and channel: Spearman correlation of the
   predicted variance exp(log_var) with the squared error (pooled over objects, and per channel), and the fraction
   of errors inside the predicted 1-sigma and 2-sigma bands (a calibrated Gaussian gives 0.683 and 0.954);
-- inference seconds per object (`LMRM.predict`, G-buffer ray queries included), median over objects.
+- inference seconds per object (`LMRM.predict`, G-buffer ray queries included), median over objects;
+- the base colour by material family (each pixel's region, `gbuffers/NNN_region.exr`, and its family in
+  material.json; pixels pooled over objects): the LMRM's PSNR and the mean material's, and the mean colour each
+  predicts against the truth's, which shows where the LMRM gives the layers' colour to the base (docs/lmrm.md).
 
 `--figure PNG` also draws, for the first `--figure-objects` objects, view 0: the input, base colour, latents
 (channels 0-2 and 3-5 as RGB of (l+1)/2) and the predicted standard deviation next to the absolute error.
@@ -29,6 +32,8 @@ G-buffers (positions at pixel centres). Measured in the same run:
 
 from __future__ import annotations
 
+import json
+import math
 import statistics
 import sys
 import time
@@ -51,6 +56,7 @@ from neumatex_core.lmrm.data import (  # noqa: E402
     lighting_cues,
     load_synth_object,
     prefiltered,
+    read_channels,
     to_camera_directions,
 )
 from neumatex_core.lmrm.inference import load_lmrm_from  # noqa: E402
@@ -64,6 +70,47 @@ def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     from scipy.stats import spearmanr
 
     return float(spearmanr(a, b).statistic)
+
+
+def pixel_families(folder: Path, views: int) -> tuple[list[str], torch.Tensor]:
+    """The material family of every region of the object in `folder`, and its views' region ids [V, H, W] (long)."""
+    families = [r["family"] for r in json.loads((folder / "material.json").read_text())["regions"]]
+    ids = [torch.from_numpy(read_channels(folder / "gbuffers" / f"{v:03d}_region.exr", ("region",))[..., 0].copy())
+           for v in range(views)]  # fmt: skip
+    return families, torch.stack(ids).round().long()
+
+
+def _db(mse: float) -> float:
+    """PSNR (peak 1) of a mean squared error; inf for none, as eval/metrics.py's psnr."""
+    return math.inf if mse == 0 else -10 * math.log10(mse)
+
+
+class FamilyErrors:
+    """Base-colour squared errors [3] of the LMRM and of the mean material, pooled per family over objects."""
+
+    def __init__(self) -> None:
+        self.rows: dict[str, dict[str, torch.Tensor]] = {}
+
+    def add(self, family: str, pred: torch.Tensor, mean: torch.Tensor, truth: torch.Tensor) -> None:
+        """pred, truth [N, 3] rho_d of one family's pixels; mean [3] the mean material's."""
+        row = self.rows.setdefault(family, {k: torch.zeros(3, dtype=torch.float64) for k in
+                                            ("lmrm", "mean", "pred_sum", "truth_sum", "n")})  # fmt: skip
+        row["lmrm"] += ((pred - truth) ** 2).sum(0).double()
+        row["mean"] += ((mean - truth) ** 2).sum(0).double()
+        row["pred_sum"] += pred.sum(0).double()
+        row["truth_sum"] += truth.sum(0).double()
+        row["n"] += truth.shape[0]
+
+    def table(self) -> dict[str, dict[str, Any]]:
+        total = sum(float(r["n"][0]) for r in self.rows.values())
+        out = {}
+        for fam, r in sorted(self.rows.items()):
+            n = float(r["n"][0])
+            out[fam] = {"share": n / total, "lmrm_basecolor": _db(float(r["lmrm"].sum()) / (3 * n)),
+                        "mean_basecolor": _db(float(r["mean"].sum()) / (3 * n)),
+                        "lmrm_mean_colour": (r["pred_sum"] / n).round(decimals=3).tolist(),
+                        "truth_mean_colour": (r["truth_sum"] / n).round(decimals=3).tolist()}  # fmt: skip
+        return out
 
 
 def _heat(x: np.ndarray, vmax: float) -> np.ndarray:
@@ -146,6 +193,7 @@ def main() -> int:
     inside2 = np.zeros(9)
     total = 0
     fig_rows = []
+    families = FamilyErrors()
     print(f"LMRM {lmrm.record.get('sha256', '')[:12]} on {len(folders)} objects of {args.data}")
     for folder in folders:
         obj = load_synth_object(folder)
@@ -176,6 +224,11 @@ def main() -> int:
             "own_mean_basecolor": psnr(t[None, :, :3].mean(1, keepdim=True).expand(1, t.shape[0], 3), t[None, :, :3]),
         }  # fmt: skip
         per_object.append(row)
+        names, regions = pixel_families(folder, m.shape[0])
+        for k, fam in enumerate(names):
+            inside = regions[m] == k
+            if inside.any():
+                families.add(fam, rho[inside], mean[:3], t[inside, :3])
         err = torch.cat([rho, lat], -1) - t[:, :9]
         var = torch.exp(log_var)
         sd = var.sqrt()
@@ -238,13 +291,18 @@ def main() -> int:
           f"{calib['within_2sigma']:.3f} (0.954)")
     print("Spearman per channel: " + ", ".join(f"{c} {v:.2f}" for c, v in calib["spearman_per_channel"].items()))
     print(f"inference: median {sec:.2f} s per object ({torch.get_num_threads()} threads)")
+    by_family = families.table()
+    print("base colour by family (pixels pooled) | share | LMRM dB | mean material dB | LMRM mean colour -> truth's")
+    for fam, f in by_family.items():
+        print(f"  {fam:10s} | {f['share']:.2f} | {f['lmrm_basecolor']:6.2f} | {f['mean_basecolor']:6.2f} | "
+              f"{f['lmrm_mean_colour']} -> {f['truth_mean_colour']}")
     if args.figure:
         figure(fig_rows, Path(args.figure))
         print(f"wrote {args.figure}")
     if not args.no_save:
         rec = {"data": args.data, "objects": len(per_object), "checkpoint_sha256": lmrm.record.get("sha256"),
                "basis_id": lmrm.basis_id, "psnr": avg, "calibration": calib, "seconds_per_object_median": sec,
-               "per_object": per_object}  # fmt: skip
+               "by_family": by_family, "per_object": per_object}  # fmt: skip
         print(f"appended to {write_result('lmrm', rec)}")
     return 0
 

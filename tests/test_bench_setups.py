@@ -111,3 +111,36 @@ def test_the_pbr_start_benchmark_reads_a_basis_of_another_latent_size_through_a_
     assert neural.gbuffer(points, None).shape == (5, 3 + basis.arch.latent_dim)
     neural.tensor.data.add_(1.0)
     assert torch.equal(triplane.planes.detach(), before)
+
+
+def test_the_lmrm_benchmarks_family_table_pools_each_familys_pixels_over_objects(tmp_path: Path) -> None:
+    # bench/lmrm.py's base colour by material family: each pixel's family from its region id and material.json,
+    # squared errors pooled over objects, PSNR = -10 log10(MSE) and the mean colours of prediction and truth.
+    from conftest import ENVMAPS, MESHES
+
+    from neumatex_core.lmrm.data import load_synth_object
+    from neumatex_core.synth import SynthConfig, generate
+
+    lmrm_bench = bench_module("lmrm")
+    out = tmp_path / "test"
+    generate(SynthConfig(out=str(out), n=1, split="test", seed=5, resolution=24, spp=2, max_bounces=1, photos=0,
+                         relight_maps=0, workers=1, progress=False, meshes=str(MESHES), envmaps=str(ENVMAPS)))
+    folder = out / "test-000000"
+    obj = load_synth_object(folder)
+    names, regions = lmrm_bench.pixel_families(folder, obj.mask.shape[0])
+    assert regions.shape == obj.mask.shape and set(regions[obj.mask].unique().tolist()) <= set(range(len(names)))
+    table = lmrm_bench.FamilyErrors()
+    truth = torch.tensor([[0.2, 0.4, 0.6], [0.2, 0.4, 0.6], [0.0, 0.0, 0.0], [0.1, 0.1, 0.1]])
+    pred = torch.tensor([[0.3, 0.4, 0.6], [0.1, 0.4, 0.6], [0.0, 0.0, 0.0], [0.1, 0.1, 0.1]])
+    mean = torch.tensor([0.5, 0.5, 0.5])
+    table.add("plastic", pred[:2], mean, truth[:2])
+    table.add("metal", pred[2:3], mean, truth[2:3])
+    table.add("metal", pred[3:], mean, truth[3:])  # a second object's metal pools with the first's
+    rows = table.table()
+    assert rows["plastic"]["share"] == pytest.approx(0.5) and rows["metal"]["share"] == pytest.approx(0.5)
+    assert rows["plastic"]["lmrm_basecolor"] == pytest.approx(-10 * torch.log10(torch.tensor(0.02 / 6)).item())
+    mse_mean_metal = (0.25 * 3 + 0.16 * 3) / 6
+    assert rows["metal"]["mean_basecolor"] == pytest.approx(-10 * torch.log10(torch.tensor(mse_mean_metal)).item())
+    assert rows["metal"]["lmrm_basecolor"] == float("inf")  # no error at all
+    assert rows["plastic"]["lmrm_mean_colour"] == pytest.approx([0.2, 0.4, 0.6])
+    assert rows["metal"]["truth_mean_colour"] == pytest.approx([0.05, 0.05, 0.05])

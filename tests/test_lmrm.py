@@ -31,7 +31,7 @@ from neumatex_core.lmrm import LMRM, LMRMConfig, LMRMError, LMRMNet, LMRMPredict
 from neumatex_core.lmrm.data import Augment, LMRMDataset, load_synth_object
 from neumatex_core.lmrm.inference import DEFAULT_RECORD, DEFAULT_WEIGHTS
 from neumatex_core.lmrm.losses import beta_nll
-from neumatex_core.lmrm.model import IN_CHANNELS, lift_to_planes
+from neumatex_core.lmrm.model import IN_CHANNELS, RATIO_INPUT, RATIO_MAX, lift_to_planes
 from neumatex_core.lmrm.train import TrainLMRMConfig, train_lmrm
 from neumatex_core.materials.neural_basis import load_basis
 from neumatex_core.synth import SynthConfig, generate
@@ -102,6 +102,35 @@ def test_predict_shapes_and_interface(tiny_data):
         lmrm.predict(obj.rgb, obj.cameras[:5], mesh)
     with pytest.raises(LMRMError, match="unit sphere"):
         lmrm.predict(obj.rgb, obj.cameras, replace(mesh, vertices=mesh.vertices * 3))
+
+
+def test_the_ratio_path_puts_the_lifted_shading_normalised_colour_into_the_triplane(tiny_data):
+    # LMRMConfig.ratio_path: the triplane's first six channels are the per-texel mean and mean square of the
+    # linear pixel over the diffuse lighting cue, computed here from the views without the network, whatever
+    # its weights; the other channels are the U-Net's, and a record without the flag reads as the plain model.
+    cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True)
+    obj = load_synth_object(sorted(tiny_data.glob("train-*"))[0])
+    mesh = load_mesh(obj.folder / "mesh.obj")
+    planes = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        lmrm = LMRM(LMRMNet(cfg), {"basis_id": "x"})
+        inputs = lmrm.prepare(obj.rgb, obj.cameras, mesh, obj.envmap)
+        planes.append(lmrm.predict(obj.rgb, obj.cameras, mesh, obj.envmap).triplane.planes.detach())
+    assert planes[0].shape == (3, 8, cfg.plane_resolution, cfg.plane_resolution)
+    m = inputs.mask
+    ratio = inputs.inputs.permute(0, 2, 3, 1)[m][:, RATIO_INPUT] * RATIO_MAX  # [P, 3] in [0, RATIO_MAX]
+    pts = inputs.position[m]
+    assert float(ratio.max()) > 0.1  # the views are lit: a colour reaches the path
+    expected = lift_to_planes(ratio, pts, cfg.plane_resolution)[:, :6]
+    torch.testing.assert_close(planes[0][:, :6], expected)
+    torch.testing.assert_close(planes[1][:, :6], expected)  # not learnt: the same for other weights
+    assert not torch.allclose(planes[0][:, 6:], planes[1][:, 6:])  # the U-Net's channels are
+    # Without lighting the ratio input is zero, and so is the path.
+    dark = LMRM(LMRMNet(cfg), {"basis_id": "x"}).predict(obj.rgb, obj.cameras, mesh, None)
+    assert float(dark.triplane.planes.detach()[:, :6].abs().max()) == 0
+    assert "ratio_path" not in LMRMConfig().to_dict()  # records of earlier models stay as they were
+    assert LMRMConfig.from_dict(cfg.to_dict()) == cfg and LMRMConfig.from_dict(LMRMConfig().to_dict()) == LMRMConfig()
 
 
 def test_pbr_gbuffer_channels_are_read_by_name(tmp_path):

@@ -12,7 +12,10 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
    XZ) gets the scatter-mean of the features of the points falling into each of its R x R texels, their mean
    square (view-dependent effects, e.g. highlights, raise it) and log(1 + count) (`lift_to_planes`).
 4. A shared U-Net (`PlaneNet`, with a one-hot plane-id input and the mean feature of all the object's points as
-   global context at every texel) turns the three lifted planes into the triplane [3, C, R, R].
+   global context at every texel) turns the three lifted planes into the triplane [3, C, R, R]. With
+   `LMRMConfig.ratio_path` its first `RATIO_PATH_CHANNELS` channels are instead the lifted per-texel mean and mean
+   square of the shading-normalised colour itself (a fixed colour path to the decoders, nothing learnt; the U-Net
+   makes the other C - 6; docs/lmrm.md).
 5. Decoders from `neumatex_core.fields`: `MaterialDecoder` (rho_d, latent), `UncertaintyDecoder` (9 log-variances),
    `PBRDecoder` (base colour, roughness, metallic), all reading `Triplane.features(points)` [N, 3C].
 
@@ -22,7 +25,7 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Literal, get_args
 
 import torch
 import torch.nn.functional as F
@@ -38,6 +41,10 @@ from neumatex_core.lighting.prefilter import KAPPAS
 N_CUES = 3 * (1 + len(KAPPAS))  # diffuse RGB + glossy RGB per lobe width
 IN_CHANNELS = 3 + 1 + 3 + 3 + N_CUES + 3 + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
 RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
+RATIO_INPUT = slice(3 + 1 + 3 + 3 + N_CUES, 3 + 1 + 3 + 3 + N_CUES + 3)  # the ratio's channels in view_inputs
+LMRMPreset = Literal["cpu", "cpu-ratio", "gpu", "test"]  # LMRMConfig.preset's names
+LMRM_PRESETS: tuple[str, ...] = get_args(LMRMPreset)
+RATIO_PATH_CHANNELS = 6  # LMRMConfig.ratio_path: the lifted ratio's mean and mean square (RGB each)
 
 
 @dataclass
@@ -53,20 +60,25 @@ class LMRMConfig:
     triplane_channels: int = 16  # C
     decoder_hidden: int = 64
     decoder_layers: int = 2
+    # the triplane's first RATIO_PATH_CHANNELS channels hold the lifted shading-normalised colour (module docstring,
+    # step 4): an MLP on those statistics alone beats the learnt path on the test split (docs/lmrm.md)
+    ratio_path: bool = False
 
     @classmethod
     def preset(cls, name: str) -> LMRMConfig:
-        """'cpu' (the defaults), 'gpu' (about 30x the compute: larger views, planes and widths) or 'test' (a few
-        thousand parameters, for unit tests)."""
+        """'cpu' (the defaults), 'cpu-ratio' (the same with the fixed colour path, `ratio_path`), 'gpu' (about 30x
+        the compute: larger views, planes and widths) or 'test' (a few thousand parameters, for unit tests)."""
         if name == "cpu":
             return cls()
+        if name == "cpu-ratio":
+            return cls(ratio_path=True)
         if name == "test":
             return cls(view_resolution=24, view_channels=8, view_layers=1, feature_channels=4, plane_resolution=8,
                        plane_channels=8, triplane_channels=4, decoder_hidden=16, decoder_layers=1)  # fmt: skip
         if name == "gpu":
             return cls(view_resolution=128, view_channels=64, view_layers=3, feature_channels=32,
                        plane_resolution=96, plane_channels=64, triplane_channels=32, decoder_hidden=128)  # fmt: skip
-        raise ValueError(f"unknown LMRM preset {name!r} (expected 'cpu', 'gpu' or 'test')")
+        raise ValueError(f"unknown LMRM preset {name!r} (expected one of {', '.join(LMRM_PRESETS)})")
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LMRMConfig:
@@ -74,7 +86,11 @@ class LMRMConfig:
         return cls(**data)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """The fields; `ratio_path` only when on, so the records of models made before it stay as they are."""
+        out = asdict(self)
+        if not self.ratio_path:
+            del out["ratio_path"]
+        return out
 
 
 def view_inputs(
@@ -155,7 +171,8 @@ def lift_to_planes(features: torch.Tensor, points: torch.Tensor, resolution: int
 
 class PlaneNet(nn.Module):
     """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3, R, R] (lifted mean, mean square, count, the
-    object's global feature mean, plane id) -> [B*3, C, R, R] (two levels down)."""
+    object's global feature mean, plane id) -> [B*3, C_out, R, R] (two levels down; C_out = C, or C - 6 with the
+    ratio path)."""
 
     def __init__(self, cfg: LMRMConfig) -> None:
         super().__init__()
@@ -166,8 +183,9 @@ class PlaneNet(nn.Module):
         self.mid = nn.Sequential(_conv(c2, c2), _conv(c2, c2))
         self.dec2 = _conv(2 * c2, c1)
         self.dec1 = nn.Sequential(_conv(2 * c1, c1), _conv(c1, c1))
-        self.out = nn.Conv2d(c1, cfg.triplane_channels, 1)
-        self.skip = nn.Conv2d(c_in, cfg.triplane_channels, 1)  # linear path: lifted means straight to the triplane
+        c_out = cfg.triplane_channels - (RATIO_PATH_CHANNELS if cfg.ratio_path else 0)
+        self.out = nn.Conv2d(c1, c_out, 1)
+        self.skip = nn.Conv2d(c_in, c_out, 1)  # linear path: lifted means straight to the triplane
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         e1 = self.enc1(x)
@@ -220,7 +238,7 @@ class LMRMNet(nn.Module):
     def planes(self, objects: list[ObjectInputs]) -> torch.Tensor:
         """Triplane planes [B, 3, C, R, R] of B objects."""
         r = self.cfg.plane_resolution
-        lifted = []
+        lifted, ratios = [], []
         for obj in objects:
             feats = self.view_encoder(obj.inputs)  # [V, F, H, W]
             m = obj.mask
@@ -229,11 +247,17 @@ class LMRMNet(nn.Module):
             planes = lift_to_planes(per_pixel, pts, r)
             context = per_pixel.mean(0)[None, :, None, None].expand(3, -1, r, r)  # object-level colour, gloss
             lifted.append(torch.cat([planes, context], dim=1))
+            if self.cfg.ratio_path:  # the ratio input back in [0, RATIO_MAX], lifted: mean, mean square
+                ratio = obj.inputs.permute(0, 2, 3, 1)[m][:, RATIO_INPUT] * RATIO_MAX
+                ratios.append(lift_to_planes(ratio, pts, r)[:, :RATIO_PATH_CHANNELS])
         x = torch.stack(lifted)  # [B, 3, 3F+1, R, R]
         b = x.shape[0]
         plane_id = torch.eye(3, dtype=x.dtype, device=x.device)[None, :, :, None, None].expand(b, 3, 3, r, r)
         x = torch.cat([x, plane_id], dim=2).reshape(b * 3, -1, r, r)
-        return self.plane_net(x).reshape(b, 3, self.cfg.triplane_channels, r, r)
+        out = self.plane_net(x).reshape(b, 3, -1, r, r)
+        if ratios:
+            out = torch.cat([torch.stack(ratios), out], dim=2)
+        return out
 
     def features(self, planes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
         """`Triplane.features` of planes [3, C, R, R] at points [N, 3] -> [N, 3C], differentiable in planes."""

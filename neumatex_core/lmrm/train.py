@@ -37,7 +37,7 @@ from neumatex_core.eval.metrics import psnr
 from neumatex_core.lmrm.data import Augment, LMRMDataset, Sample, make_sample, training_mean
 from neumatex_core.lmrm.inference import DATA_DIR, save_lmrm
 from neumatex_core.lmrm.losses import LossWeights, lmrm_loss
-from neumatex_core.lmrm.model import LMRMConfig, LMRMNet
+from neumatex_core.lmrm.model import LMRMConfig, LMRMNet, LMRMPreset
 from neumatex_core.lmrm.plots import line_chart
 from neumatex_core.materials.neural_basis import load_basis
 
@@ -50,7 +50,7 @@ class TrainLMRMConfig:
     data: str = option("data/synth-train", "comma-separated synth output folders")
     cache: str = option("data/lmrm-cache", "folder for the per-object tensor cache")
     out: str = option("runs/lmrm/train", "output folder: checkpoint, curves, final weights")
-    preset: Literal["cpu", "gpu", "test"] = option("cpu", "model size (LMRMConfig.preset)")
+    preset: LMRMPreset = option("cpu", "model size (LMRMConfig.preset)")
     steps: int = option(560, "optimisation steps in total")
     pbr_steps: int = option(100, "steps of stage 1 (PBR targets through the PBR head) before the neural stage")
     batch_size: int = option(4, "objects per step and process")
