@@ -17,6 +17,7 @@ from tto_fixtures import EXAMPLE
 
 from neumatex_core.assets import read_asset
 from neumatex_core.cli import main
+from neumatex_core.imageio import read_image
 from neumatex_core.lmrm import LMRMConfig, LMRMNet, save_lmrm
 from neumatex_core.materials.neural_basis import BASIS_V2, BASIS_V4, BASIS_V6, basis_latent_dim, load_basis
 from neumatex_core.pipeline import (
@@ -278,6 +279,12 @@ def test_evaluate_variant_scores_a_synthetic_object(tmp_path, tiny_lmrm):
     # a result in another basis (here basis v4) is scored against the truth's latents in that basis
     in_v4 = evaluate_variant(EXAMPLE, work, "pbr_start_v4", cfg, render_views=(0,), render_spp=2)
     assert math.isfinite(in_v4["psnr_latents"]) and math.isfinite(in_v4["psnr_basecolor"])
+    # ... and its figures drawn, whatever the basis's latent size (v6: 16 numbers; the first three are shown)
+    figures = tmp_path / "figures"
+    in_v6 = evaluate_variant(EXAMPLE, work, "default_v6", cfg, render_views=(0,), render_spp=2, figure_dir=figures)
+    assert math.isfinite(in_v6["psnr_latents"])
+    sizes = {read_image(figures / f"{name}.png").shape for name in ("render", "basecolor", "latent")}
+    assert len(sizes) == 1 and next(iter(sizes))[2] == 3  # three RGB pictures of the same frame
     with pytest.raises(ValueError, match="unknown variant"):
         evaluate_variant(EXAMPLE, work, "nope", cfg)
 

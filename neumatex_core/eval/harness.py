@@ -76,7 +76,7 @@ def pbr_base_colour(values: torch.Tensor, basis: NeuralBasis) -> torch.Tensor:
 
 def _gbuffer_fn(params: Parametrisation | None, pred: LMRMPrediction, gt: GroundTruth, uv_mesh: Any,
                 basis: NeuralBasis) -> Any:
-    """points -> [N, 9] for the G-buffer metrics (PBR: `pbr_base_colour`)."""
+    """points -> [N, 3 + K] (rho_d, the K latents of the basis) for the G-buffer metrics (PBR: `pbr_base_colour`)."""
     if params is None:
         return lambda p: torch.cat(pred.material_decoder(pred.triplane.features(p)), dim=-1)
     if isinstance(params, NeuralTriplane):
@@ -217,7 +217,8 @@ def _relight_psnr(object_dir: Path, field: MaterialField, views: Sequence[int], 
 
 def write_figures(folder: Path, cap: Any, field: MaterialField, gfn: Any, mesh: Any, spp: int, bounces: int,
                   seed: int, view: int = 0) -> None:
-    """render.png, basecolor.png, latent.png of frame `view` of `cap` (see `evaluate_variant`)."""
+    """render.png, basecolor.png, latent.png of frame `view` of `cap` (see `evaluate_variant`); latent.png shows
+    the first three latent numbers, whatever the basis's size (`gfn` gives rho_d and the latents, [N, 3 + K])."""
     from neumatex_core.capture.tonemap import srgb_oetf_numpy
     from neumatex_core.imageio import write_image
 
@@ -229,9 +230,11 @@ def write_figures(folder: Path, cap: Any, field: MaterialField, gfn: Any, mesh: 
                                                          seed=seed + view)).cpu()
         g = render_gbuffer(mesh, cam)
         mask = g.mask.reshape(-1)
-        values = torch.ones(mask.shape[0], 9)
+        values = torch.ones(mask.shape[0], 6)
         if bool(mask.any()):
-            values[mask] = gfn(g.position.reshape(-1, 3)[mask]).float().cpu()
+            covered = gfn(g.position.reshape(-1, 3)[mask]).float().cpu()
+            values = torch.ones(mask.shape[0], covered.shape[1])
+            values[mask] = covered
     h, w = cam.height, cam.width
     white = ~mask.reshape(h, w).numpy()
     rho = srgb_oetf_numpy(np.clip(values[:, :3].reshape(h, w, 3).numpy(), 0, 1))
