@@ -131,6 +131,8 @@ def test_the_ratio_path_puts_the_lifted_shading_normalised_colour_into_the_tripl
     assert float(dark.triplane.planes.detach()[:, :6].abs().max()) == 0
     assert "ratio_path" not in LMRMConfig().to_dict()  # records of earlier models stay as they were
     assert LMRMConfig.from_dict(cfg.to_dict()) == cfg and LMRMConfig.from_dict(LMRMConfig().to_dict()) == LMRMConfig()
+    with pytest.raises(ValueError, match="triplane_channels > 6"):
+        replace(cfg, triplane_channels=6)
 
 
 def test_pbr_gbuffer_channels_are_read_by_name(tmp_path):

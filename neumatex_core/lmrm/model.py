@@ -39,9 +39,9 @@ from neumatex_core.fields.triplane import PLANE_AXES, Triplane
 from neumatex_core.lighting.prefilter import KAPPAS
 
 N_CUES = 3 * (1 + len(KAPPAS))  # diffuse RGB + glossy RGB per lobe width
-IN_CHANNELS = 3 + 1 + 3 + 3 + N_CUES + 3 + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
-RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
 RATIO_INPUT = slice(3 + 1 + 3 + 3 + N_CUES, 3 + 1 + 3 + 3 + N_CUES + 3)  # the ratio's channels in view_inputs
+IN_CHANNELS = RATIO_INPUT.stop + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
+RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
 LMRMPreset = Literal["cpu", "cpu-ratio", "gpu", "test"]  # LMRMConfig.preset's names
 LMRM_PRESETS: tuple[str, ...] = get_args(LMRMPreset)
 RATIO_PATH_CHANNELS = 6  # LMRMConfig.ratio_path: the lifted ratio's mean and mean square (RGB each)
@@ -63,6 +63,11 @@ class LMRMConfig:
     # the triplane's first RATIO_PATH_CHANNELS channels hold the lifted shading-normalised colour (module docstring,
     # step 4): an MLP on those statistics alone beats the learnt path on the test split (docs/lmrm.md)
     ratio_path: bool = False
+
+    def __post_init__(self) -> None:
+        if self.ratio_path and self.triplane_channels <= RATIO_PATH_CHANNELS:
+            raise ValueError(f"LMRM ratio_path takes {RATIO_PATH_CHANNELS} of the triplane's channels: it needs "
+                             f"triplane_channels > {RATIO_PATH_CHANNELS}, got {self.triplane_channels}")
 
     @classmethod
     def preset(cls, name: str) -> LMRMConfig:
