@@ -33,7 +33,6 @@ G-buffers (positions at pixel centres). Measured in the same run:
 from __future__ import annotations
 
 import json
-import math
 import statistics
 import sys
 import time
@@ -48,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import argument_parser, write_result  # noqa: E402
 
 from neumatex_core.capture.tonemap import srgb_eotf  # noqa: E402
-from neumatex_core.eval.metrics import psnr  # noqa: E402
+from neumatex_core.eval.metrics import psnr, psnr_of_mse  # noqa: E402
 from neumatex_core.geometry.mesh import load_mesh  # noqa: E402
 from neumatex_core.lmrm import load_lmrm  # noqa: E402
 from neumatex_core.lmrm.data import (  # noqa: E402
@@ -80,34 +79,30 @@ def pixel_families(folder: Path, views: int) -> tuple[list[str], torch.Tensor]:
     return families, torch.stack(ids).round().long()
 
 
-def _db(mse: float) -> float:
-    """PSNR (peak 1) of a mean squared error; inf for none, as eval/metrics.py's psnr."""
-    return math.inf if mse == 0 else -10 * math.log10(mse)
-
-
 class FamilyErrors:
     """Base-colour squared errors [3] of the LMRM and of the mean material, pooled per family over objects."""
 
     def __init__(self) -> None:
         self.rows: dict[str, dict[str, torch.Tensor]] = {}
+        self.pixels: dict[str, int] = {}
 
     def add(self, family: str, pred: torch.Tensor, mean: torch.Tensor, truth: torch.Tensor) -> None:
         """pred, truth [N, 3] rho_d of one family's pixels; mean [3] the mean material's."""
         row = self.rows.setdefault(family, {k: torch.zeros(3, dtype=torch.float64) for k in
-                                            ("lmrm", "mean", "pred_sum", "truth_sum", "n")})  # fmt: skip
+                                            ("lmrm", "mean", "pred_sum", "truth_sum")})  # fmt: skip
         row["lmrm"] += ((pred - truth) ** 2).sum(0).double()
         row["mean"] += ((mean - truth) ** 2).sum(0).double()
         row["pred_sum"] += pred.sum(0).double()
         row["truth_sum"] += truth.sum(0).double()
-        row["n"] += truth.shape[0]
+        self.pixels[family] = self.pixels.get(family, 0) + truth.shape[0]
 
     def table(self) -> dict[str, dict[str, Any]]:
-        total = sum(float(r["n"][0]) for r in self.rows.values())
+        total = sum(self.pixels.values())
         out = {}
         for fam, r in sorted(self.rows.items()):
-            n = float(r["n"][0])
-            out[fam] = {"share": n / total, "lmrm_basecolor": _db(float(r["lmrm"].sum()) / (3 * n)),
-                        "mean_basecolor": _db(float(r["mean"].sum()) / (3 * n)),
+            n = self.pixels[fam]
+            out[fam] = {"share": n / total, "lmrm_basecolor": psnr_of_mse(float(r["lmrm"].sum()) / (3 * n)),
+                        "mean_basecolor": psnr_of_mse(float(r["mean"].sum()) / (3 * n)),
                         "lmrm_mean_colour": (r["pred_sum"] / n).round(decimals=3).tolist(),
                         "truth_mean_colour": (r["truth_sum"] / n).round(decimals=3).tolist()}  # fmt: skip
         return out
@@ -225,8 +220,9 @@ def main() -> int:
         }  # fmt: skip
         per_object.append(row)
         names, regions = pixel_families(folder, m.shape[0])
+        covered_regions = regions[m]
         for k, fam in enumerate(names):
-            inside = regions[m] == k
+            inside = covered_regions == k
             if inside.any():
                 families.add(fam, rho[inside], mean[:3], t[inside, :3])
         err = torch.cat([rho, lat], -1) - t[:, :9]

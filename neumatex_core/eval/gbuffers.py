@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neumatex_core.eval.metrics import psnr_of_mse
 from neumatex_core.imageio import read_image
 from neumatex_core.materials.layered import PARAMETER_NAMES
 from neumatex_core.materials.neural_basis import BasisError, NeuralBasis, load_basis
@@ -97,10 +98,6 @@ def truth_lookup(gt: GroundTruth, chunk: int = 4096) -> GBufferFn:
     return lookup
 
 
-def _psnr(mse: float) -> float:
-    return math.inf if mse == 0 else 10 * math.log10(1 / mse)
-
-
 def gbuffer_psnr(fn: GBufferFn, gt: GroundTruth, chunk: int = 1 << 15) -> dict[str, float]:
     """{'psnr_basecolor', 'psnr_latents'} (dB) of fn's G-buffers against the ground truth over its pixels."""
     with torch.no_grad():
@@ -108,6 +105,6 @@ def gbuffer_psnr(fn: GBufferFn, gt: GroundTruth, chunk: int = 1 << 15) -> dict[s
     truth = gt.values
     rho = float(((pred[:, :3].double() - truth[:, :3].double()) ** 2).mean())
     if pred.shape[1] != truth.shape[1]:  # a basis of another latent size (TTOConfig.basis): nothing to compare
-        return {"psnr_basecolor": _psnr(rho), "psnr_latents": math.nan}
+        return {"psnr_basecolor": psnr_of_mse(rho), "psnr_latents": math.nan}
     lat = float((((pred[:, 3:].double() - truth[:, 3:].double()) / 2) ** 2).mean())
-    return {"psnr_basecolor": _psnr(rho), "psnr_latents": _psnr(lat)}
+    return {"psnr_basecolor": psnr_of_mse(rho), "psnr_latents": psnr_of_mse(lat)}

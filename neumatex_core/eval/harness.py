@@ -230,11 +230,9 @@ def write_figures(folder: Path, cap: Any, field: MaterialField, gfn: Any, mesh: 
                                                          seed=seed + view)).cpu()
         g = render_gbuffer(mesh, cam)
         mask = g.mask.reshape(-1)
-        values = torch.ones(mask.shape[0], 6)
-        if bool(mask.any()):
-            covered = gfn(g.position.reshape(-1, 3)[mask]).float().cpu()
-            values = torch.ones(mask.shape[0], covered.shape[1])
-            values[mask] = covered
+        covered = gfn(g.position.reshape(-1, 3)[mask]).float().cpu() if bool(mask.any()) else torch.ones(0, 6)
+        values = torch.ones(mask.shape[0], covered.shape[1])
+        values[mask] = covered
     h, w = cam.height, cam.width
     white = ~mask.reshape(h, w).numpy()
     rho = srgb_oetf_numpy(np.clip(values[:, :3].reshape(h, w, 3).numpy(), 0, 1))

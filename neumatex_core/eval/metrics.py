@@ -22,7 +22,11 @@ def masked_mse(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = Non
     return float(diff.mean())
 
 
+def psnr_of_mse(mse: float, peak: float = 1.0) -> float:
+    """PSNR in dB of a mean squared error; inf for none."""
+    return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
+
+
 def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None, peak: float = 1.0) -> float:
     """PSNR in dB of a against b [H, W, C] over the masked pixels; inf for identical images."""
-    mse = masked_mse(a, b, mask)
-    return math.inf if mse == 0 else 10 * math.log10(peak * peak / mse)
+    return psnr_of_mse(masked_mse(a, b, mask), peak)
