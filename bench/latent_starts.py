@@ -24,7 +24,7 @@ import collections
 import json
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import torch
@@ -44,7 +44,7 @@ LATENT_MATCH = 2e-3  # a pixel belongs to a region when its target latent is the
 class Regions:
     """K regions, P observations each, M environment samples: wo [K, P, 3] and wi [K, P, M, 3] in each pixel's
     shading frame, radiance_over_pdf [K, M, 3] (L_env / pdf, linear RGB per sr), rho [K, P, 3] the truth's base colour,
-    latent [K, 6] the truth's latent, family [K] names, object [K] ids."""
+    latent [K, 6] the truth's latent, family [K] names."""
 
     wo: torch.Tensor
     wi: torch.Tensor
@@ -52,7 +52,6 @@ class Regions:
     rho: torch.Tensor
     latent: torch.Tensor
     family: list[str]
-    object: list[str]
 
 
 def environment_samples(env: EnvironmentMap, m: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,8 +74,9 @@ def local_frames(normal: torch.Tensor, wo: torch.Tensor, wi: torch.Tensor) -> tu
     return _shading(normal).to_local(wo), wi_local
 
 
-def region_observations(folder: Path, cache_dir: Path, n_obs: int, n_env: int, generator: torch.Generator) -> Regions:
-    """The regions of one test object with at least n_obs covered pixels, n_obs of them drawn each."""
+def region_observations(folder: Path, cache_dir: Path, n_obs: int, n_env: int,
+                        generator: torch.Generator) -> Regions | None:
+    """The regions of one test object with at least n_obs covered pixels, n_obs of them drawn each (None: none)."""
     data = torch.load(build_cache(folder, cache_dir), weights_only=True)
     wi_world, r_over_pdf = environment_samples(load_synth_object(folder).envmap, n_env, generator)
     targets = data["targets"].float()
@@ -93,17 +93,15 @@ def region_observations(folder: Path, cache_dir: Path, n_obs: int, n_env: int, g
         rhos.append(targets[pick, :3])
         lats.append(latent)
         fams.append(region["family"])
-    k = len(lats)
-    return Regions(torch.stack(wos) if k else torch.zeros(0, n_obs, 3), torch.stack(wis) if k else
-                   torch.zeros(0, n_obs, n_env, 3), r_over_pdf.expand(k, n_env, 3),
-                   torch.stack(rhos) if k else torch.zeros(0, n_obs, 3), torch.stack(lats) if k else torch.zeros(0, 6),
-                   fams, [folder.name] * k)  # fmt: skip
+    if not lats:
+        return None
+    return Regions(torch.stack(wos), torch.stack(wis), r_over_pdf.expand(len(lats), n_env, 3), torch.stack(rhos),
+                   torch.stack(lats), fams)  # fmt: skip
 
 
 def concatenate(parts: list[Regions]) -> Regions:
-    return Regions(*(torch.cat([getattr(p, f) for p in parts]) for f in ("wo", "wi", "radiance_over_pdf", "rho",
-                                                                          "latent")),
-                   [f for p in parts for f in p.family], [o for p in parts for o in p.object])  # fmt: skip
+    tensors = [torch.cat([getattr(p, f.name) for p in parts]) for f in fields(Regions) if f.name != "family"]
+    return Regions(*tensors, [name for p in parts for name in p.family])
 
 
 def direct_appearance(basis: NeuralBasis, regions: Regions, latent: torch.Tensor) -> torch.Tensor:
@@ -174,8 +172,9 @@ def main() -> int:
     if not folders:
         print(f"error: {args.data}: no finished test objects", file=sys.stderr)
         return 2
-    regions = concatenate([region_observations(f, Path(args.cache), args.observations, args.env_samples, generator)
-                           for f in folders])  # fmt: skip
+    parts = [region_observations(f, Path(args.cache), args.observations, args.env_samples, generator)
+             for f in folders]  # fmt: skip
+    regions = concatenate([p for p in parts if p is not None])
     with torch.no_grad():
         target = direct_appearance(basis, regions, regions.latent)
     starts = training_starts(Path(args.train), args.train_objects)

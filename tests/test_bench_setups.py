@@ -163,7 +163,7 @@ def test_the_latent_starts_benchmarks_appearance_is_the_reflected_radiance_under
     rho = torch.tensor([0.5, 0.3, 0.2]).expand(2, 3, 3)
     regions = bench.Regions(wo=wo.expand(2, 3, 3), wi=wi.expand(2, 3, m, 3),
                             radiance_over_pdf=r_over_pdf.expand(2, m, 3), rho=rho, latent=latent,
-                            family=["coated", "fuzzy"], object=["a", "a"])  # fmt: skip
+                            family=["coated", "fuzzy"])  # fmt: skip
     with torch.no_grad():
         got = bench.direct_appearance(basis, regions, latent)  # [2, 3, 3]
         u = torch.rand(m, 2, generator=g)
@@ -191,8 +191,7 @@ def test_the_latent_starts_benchmarks_fit_reproduces_the_appearance_from_a_nearb
     wo = torch.nn.functional.normalize(torch.rand(3, 8, 3, generator=g) + torch.tensor([0.0, 0.0, 0.5]), dim=-1)
     truth = torch.tanh(torch.randn(3, 6, generator=g))
     regions = bench.Regions(wo=wo, wi=wi.expand(3, 8, 32, 3), radiance_over_pdf=torch.full((3, 32, 3), 2 * torch.pi),
-                            rho=torch.rand(3, 8, 3, generator=g), latent=truth, family=["a", "b", "c"],
-                            object=["o", "o", "o"])  # fmt: skip
+                            rho=torch.rand(3, 8, 3, generator=g), latent=truth, family=["a", "b", "c"])
     with torch.no_grad():
         target = bench.direct_appearance(basis, regions, truth)
     start = (truth + 0.1).clamp(-0.95, 0.95)
