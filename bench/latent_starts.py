@@ -31,13 +31,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import argument_parser, write_result  # noqa: E402
+from lmrm import pixel_families  # noqa: E402
 
 from neumatex_core.geometry.surface import SurfaceInteraction  # noqa: E402
 from neumatex_core.lighting.envmap import EnvironmentMap  # noqa: E402
 from neumatex_core.lmrm.data import build_cache, finished_objects, load_synth_object  # noqa: E402
 from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial, load_basis  # noqa: E402
-
-LATENT_MATCH = 2e-3  # a pixel belongs to a region when its target latent is the region's to this (float16 cache)
 
 
 @dataclass
@@ -80,19 +79,21 @@ def region_observations(folder: Path, cache_dir: Path, n_obs: int, n_env: int,
     data = torch.load(build_cache(folder, cache_dir), weights_only=True)
     wi_world, r_over_pdf = environment_samples(load_synth_object(folder).envmap, n_env, generator)
     targets = data["targets"].float()
+    families, region_ids = pixel_families(folder, data["mask"].shape[0])
+    region_of_pixel = region_ids[data["mask"]]  # the cache holds the covered pixels in mask order
     wos, wis, rhos, lats, fams = [], [], [], [], []
-    for region in json.loads((folder / "material.json").read_text())["regions"]:
-        latent = torch.tensor(region["latent"], dtype=torch.float32)
-        inside = ((targets[:, 3:9] - latent).abs().max(1).values < LATENT_MATCH).nonzero()[:, 0]
+    for k, region in enumerate(json.loads((folder / "material.json").read_text())["regions"]):
+        inside = (region_of_pixel == k).nonzero()[:, 0]
         if len(inside) < n_obs:
             continue
+        latent = torch.tensor(region["latent"], dtype=torch.float32)
         pick = inside[torch.randperm(len(inside), generator=generator)[:n_obs]]
         wo, wi = local_frames(data["normal"][pick].float(), data["to_camera"][pick].float(), wi_world)
         wos.append(wo)
         wis.append(wi)
         rhos.append(targets[pick, :3])
         lats.append(latent)
-        fams.append(region["family"])
+        fams.append(families[k])
     if not lats:
         return None
     return Regions(torch.stack(wos), torch.stack(wis), r_over_pdf.expand(len(lats), n_env, 3), torch.stack(rhos),

@@ -71,19 +71,12 @@ class LMRMConfig:
 
     @classmethod
     def preset(cls, name: str) -> LMRMConfig:
-        """'cpu' (the defaults), 'cpu-ratio' (the same with the fixed colour path, `ratio_path`), 'gpu' (about 30x
-        the compute: larger views, planes and widths) or 'test' (a few thousand parameters, for unit tests)."""
-        if name == "cpu":
-            return cls()
-        if name == "cpu-ratio":
-            return cls(ratio_path=True)
-        if name == "test":
-            return cls(view_resolution=24, view_channels=8, view_layers=1, feature_channels=4, plane_resolution=8,
-                       plane_channels=8, triplane_channels=4, decoder_hidden=16, decoder_layers=1)  # fmt: skip
-        if name == "gpu":
-            return cls(view_resolution=128, view_channels=64, view_layers=3, feature_channels=32,
-                       plane_resolution=96, plane_channels=64, triplane_channels=32, decoder_hidden=128)  # fmt: skip
-        raise ValueError(f"unknown LMRM preset {name!r} (expected one of {', '.join(LMRM_PRESETS)})")
+        """The named config (`LMRM_PRESET_FIELDS`): 'cpu' (the defaults), 'cpu-ratio' (the same with the fixed colour
+        path, `ratio_path`), 'gpu' (about 30x the compute: larger views, planes and widths) or 'test' (a few thousand
+        parameters, for unit tests)."""
+        if name not in LMRM_PRESET_FIELDS:
+            raise ValueError(f"unknown LMRM preset {name!r} (expected one of {', '.join(LMRM_PRESETS)})")
+        return cls(**LMRM_PRESET_FIELDS[name])
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LMRMConfig:
@@ -96,6 +89,18 @@ class LMRMConfig:
         if not self.ratio_path:
             del out["ratio_path"]
         return out
+
+
+# LMRMConfig.preset: each preset's fields over the defaults (the CPU model)
+LMRM_PRESET_FIELDS: dict[str, dict[str, Any]] = {
+    "cpu": {},
+    "cpu-ratio": {"ratio_path": True},
+    "gpu": {"view_resolution": 128, "view_channels": 64, "view_layers": 3, "feature_channels": 32,
+            "plane_resolution": 96, "plane_channels": 64, "triplane_channels": 32, "decoder_hidden": 128},
+    "test": {"view_resolution": 24, "view_channels": 8, "view_layers": 1, "feature_channels": 4, "plane_resolution": 8,
+             "plane_channels": 8, "triplane_channels": 4, "decoder_hidden": 16, "decoder_layers": 1},
+}
+assert set(LMRM_PRESET_FIELDS) == set(LMRM_PRESETS)  # the names are written once, in LMRMPreset
 
 
 def view_inputs(
@@ -253,7 +258,7 @@ class LMRMNet(nn.Module):
             context = per_pixel.mean(0)[None, :, None, None].expand(3, -1, r, r)  # object-level colour, gloss
             lifted.append(torch.cat([planes, context], dim=1))
             if self.cfg.ratio_path:  # the ratio input back in [0, RATIO_MAX], lifted: mean, mean square
-                ratio = obj.inputs.permute(0, 2, 3, 1)[m][:, RATIO_INPUT] * RATIO_MAX
+                ratio = obj.inputs[:, RATIO_INPUT].permute(0, 2, 3, 1)[m] * RATIO_MAX
                 ratios.append(lift_to_planes(ratio, pts, r)[:, :RATIO_PATH_CHANNELS])
         x = torch.stack(lifted)  # [B, 3, 3F+1, R, R]
         b = x.shape[0]
