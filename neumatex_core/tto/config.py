@@ -142,6 +142,9 @@ class TTOConfig:
     pbr_fit_batch: int = 8192
     # then Adam steps refining that start so its BSDF matches PBR's (tto/pbr_start.py `refine_to_pbr_bsdf`)
     pbr_bsdf_fit_steps: int = 0
+    # init "pbr": before the planes are fitted, the cells of the object whose photos a material family's prototype
+    # reproduces better under direct light than the PBR start take that prototype's fit (tto/appearance_start.py)
+    appearance_start: bool = False
     # init "pbr": the neural phase's learning rate is lr x neural_lr_scale (it starts at a fitted solution, not at
     # the LMRM's guess that lr was tuned for)
     neural_lr_scale: float = 1.0

@@ -38,6 +38,7 @@ from neumatex_core.materials.pbr import PBRMaterial
 from neumatex_core.materials.pbr_to_neural import pbr_to_neural
 from neumatex_core.render.path_tracer import PathTracer, PathTracerConfig
 from neumatex_core.render.scene import Scene
+from neumatex_core.tto.appearance_start import StartAt, appearance_start
 from neumatex_core.tto.baked_light import light_following
 from neumatex_core.tto.config import UNIFORM_RHO_VALUE, TTOConfig
 from neumatex_core.tto.data import PhotoSet
@@ -104,19 +105,33 @@ def frozen(module: torch.nn.Module | None) -> Iterator[None]:
 
 def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis: NeuralBasis, seed: int = 0,
                      steps: int = FIT_STEPS, bsdf_steps: int = 0, lr: float = FIT_LR,
-                     batch: int = FIT_BATCH) -> float:
+                     batch: int = FIT_BATCH, adjust: Adjust | None = None) -> float:
     """Fit the planes of `neural` to the PBR field `pbr` expressed in the basis (`fit_planes` at area samples), then
     (bsdf_steps > 0) refine them at the same samples so the BSDFs match (`refine_to_pbr_bsdf`); returns the
-    G-buffer fit's error."""
+    G-buffer fit's error. adjust: changes the start's (rho_d, latent) at the samples before the fit, given them, the
+    samples [P, 3] and the PBR start at any points (`pbr_start_at`), e.g. `appearance_start`."""
     points, _ = mesh.sample_surface(FIT_POINTS, seed=seed)
     points = points.to(neural.tensor.device)
     with torch.no_grad():
         v = pbr.gbuffer(points, None)
         rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
+    if adjust is not None:
+        rho, latent = adjust(points, rho, latent, partial(pbr_start_at, pbr, basis))
     error = fit_planes(neural, points, rho, latent, seed, steps, lr, batch)
     if bsdf_steps > 0:
         refine_to_pbr_bsdf(neural, basis, points, v, seed, bsdf_steps)
     return error
+
+
+def pbr_start_at(pbr: PBRTriplane, basis: NeuralBasis, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rho_d [P, 3], latent [P, D]): the PBR field `pbr` at points [P, 3] expressed in `basis` (`pbr_to_neural`)."""
+    with torch.no_grad():
+        v = pbr.gbuffer(points, None)
+        return pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
+
+
+# (points [P, 3], rho_d [P, 3], latent [P, D], the PBR start at any points) -> the start's (rho_d, latent) there
+Adjust = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, StartAt], tuple[torch.Tensor, torch.Tensor]]
 
 
 def refine_to_pbr_bsdf(neural: NeuralTriplane, basis: NeuralBasis, points: torch.Tensor, pbr_values: torch.Tensor,
@@ -380,25 +395,37 @@ def alternative_wins(pbr_psnr: float, own: float, other: float | None, margin: f
 @dataclass
 class FittedStart:
     """`fit_start`'s result: the neural triplane `params` fitted to the PBR solution, on `mesh` (None: the
-    caller's), with G-buffer error `mse` (`fit_start_to_pbr`)."""
+    caller's), with G-buffer error `mse` (`fit_start_to_pbr`) and `record` (config.appearance_start's,
+    `appearance_start`; else empty)."""
 
     params: NeuralTriplane
     mesh: Mesh | None
     mse: float
+    record: dict[str, float]
 
 
 def fit_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
               tonemap: Tonemap, prediction: LMRMPrediction, basis: NeuralBasis,
               anchor_available: bool) -> FittedStart:
     """The PBR solution `first` expressed in `basis`: the neural phase's problem (`_neural_phase`: the same planes to
-    start from, the same fit), its planes fitted by `fit_start_to_pbr`."""
+    start from, the same fit), its planes fitted by `fit_start_to_pbr`; with config.appearance_start, the cells
+    that a family prototype reproduces better on `photos` start there (`appearance_start`)."""
     neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
                             select_basis="", alternative_basis="")
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
+    record: dict[str, float] = {}
+    adjust: Adjust | None = None
+    if config.appearance_start:
+        def adjust(points: torch.Tensor, rho: torch.Tensor, latent: torch.Tensor,
+                   start_at: StartAt) -> tuple[torch.Tensor, torch.Tensor]:
+            rho, latent, made = appearance_start(basis, points, rho, latent, start_at, mesh, envmap, photos, tonemap,
+                                                 config.max_bounces, config.seed)  # fmt: skip
+            record.update(made)
+            return rho, latent
     mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
-                           config.pbr_bsdf_fit_steps, config.pbr_fit_lr, config.pbr_fit_batch)
-    return FittedStart(problem.params, problem.mesh, mse)
+                           config.pbr_bsdf_fit_steps, config.pbr_fit_lr, config.pbr_fit_batch, adjust)
+    return FittedStart(problem.params, problem.mesh, mse, record)
 
 
 def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet,
@@ -457,7 +484,7 @@ def neural_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
     if chosen is not None:
         return chosen
     made = fit_start(config, first, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
-    return BasisStart(basis, made.params.tensor.detach().clone(), made.mse, False, {})
+    return BasisStart(basis, made.params.tensor.detach().clone(), made.mse, False, made.record)
 
 
 @dataclass(frozen=True)
