@@ -47,13 +47,13 @@ def test_candidate_error_takes_the_renders_noise_out(example):
     prototypes = family_prototypes(basis)
     truth = prototypes[FAMILIES.index("dusty")]
     photos = _photos_of(example, truth, views=(0, 8), spp=256)
-    idx, _ = observed_pixels(example.mesh, photos, n_pixels=2048)
-
     start_at = uniform(truth)
+    scene = Scene(example.mesh, example.envmap, StartField(basis, start_at))
+    idx, _ = observed_pixels(scene, photos, n_pixels=2048)
     tonemap = example.capture.tonemap
-    own = candidate_errors(StartField(basis, start_at), example.mesh, example.envmap, photos, idx, tonemap, 3, 5)
-    other = candidate_errors(StartField(basis, start_at, prototypes[FAMILIES.index("metal")]), example.mesh,
-                             example.envmap, photos, idx, tonemap, 3, 5)  # fmt: skip
+    own = candidate_errors(scene, photos, idx, tonemap, 3, 5)
+    scene.material = StartField(basis, start_at, prototypes[FAMILIES.index("metal")])
+    other = candidate_errors(scene, photos, idx, tonemap, 3, 5)
     se = float(own.std()) / math.sqrt(len(own))
     assert abs(float(own.mean())) < 4 * se, (float(own.mean()), se)
     assert float(other.mean()) > 10 * se + 4 * float(other.std()) / math.sqrt(len(other)), float(other.mean())
@@ -61,8 +61,8 @@ def test_candidate_error_takes_the_renders_noise_out(example):
     rays = photos.rays(idx, RENDER_SPP, g)
     tracer = PathTracer(PathTracerConfig(max_bounces=3, spp=RENDER_SPP))
     with torch.no_grad():
-        plain = tracer.render_rays(Scene(example.mesh, example.envmap, StartField(basis, start_at)), rays.origins,
-                                   rays.directions, g).reshape(-1, RENDER_SPP, 3).mean(1)  # fmt: skip
+        scene.material = StartField(basis, start_at)
+        plain = tracer.render_rays(scene, rays.origins, rays.directions, g).reshape(-1, RENDER_SPP, 3).mean(1)
     l2 = ((example.capture.tonemap.apply(plain) - rays.target) ** 2).mean(-1)
     assert float(l2.mean()) > 8 * se, (float(l2.mean()), se)
 

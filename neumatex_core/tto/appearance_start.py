@@ -22,7 +22,6 @@ import torch
 
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.geometry.mesh import Mesh
-from neumatex_core.geometry.raycast import RayCaster
 from neumatex_core.geometry.surface import SurfaceInteraction
 from neumatex_core.lighting.envmap import EnvironmentMap
 from neumatex_core.materials.field import MaterialField
@@ -57,36 +56,29 @@ class StartField(MaterialField):
         return NeuralMaterial(self.basis, rho, latent)
 
 
-def observed_pixels(mesh: Mesh, photos: PhotoSet, n_pixels: int = OBSERVED_PIXELS,
+def observed_pixels(scene: Scene, photos: PhotoSet, n_pixels: int = OBSERVED_PIXELS,
                     seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Up to n_pixels unclipped foreground pixels of `photos` (indices [P] into its pixels, drawn without replacement)
-    and the surface point [P, 3] each one's centre sees."""
-    device = photos.device
+    and the surface point [P, 3] that a ray through each one (jittered in the pixel) sees on `scene`'s mesh."""
     g = torch.Generator().manual_seed(seed)
     unclipped = (~(photos.colour >= SATURATED).any(-1)).nonzero()[:, 0].cpu()
-    idx = unclipped[torch.randperm(len(unclipped), generator=g)[:n_pixels]].to(device)
-    pix = photos.pixel[idx]
-    origins, directions = torch.empty(len(idx), 3, device=device), torch.empty(len(idx), 3, device=device)
-    for f in torch.unique(pix[:, 0]).tolist():
-        sel = (pix[:, 0] == f).nonzero()[:, 0]
-        o, d = photos.cameras[f].rays_for_pixels(pix[sel, 1].float() + 0.5, pix[sel, 2].float() + 0.5)
-        origins[sel], directions[sel] = o.to(device), d.to(device)
-    hits = RayCaster(mesh).intersect(origins, directions)
+    idx = unclipped[torch.randperm(len(unclipped), generator=g)[:n_pixels]].to(photos.device)
+    rays = photos.rays(idx, 1, torch.Generator(device=photos.device).manual_seed(seed))
+    hits = scene.raycaster.intersect(rays.origins, rays.directions)
     ok = hits.valid
-    return idx[ok], origins[ok] + hits.t[ok].unsqueeze(-1) * directions[ok]
+    return idx[ok], rays.origins[ok] + hits.t[ok].unsqueeze(-1) * rays.directions[ok]
 
 
-def candidate_errors(field: MaterialField, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSet, idx: torch.Tensor,
-                     tonemap: Tonemap, max_bounces: int, seed: int) -> torch.Tensor:
-    """[P] each observed pixel idx's squared error (display values, channels averaged) of `field`'s render, noise
+def candidate_errors(scene: Scene, photos: PhotoSet, idx: torch.Tensor, tonemap: Tonemap, max_bounces: int,
+                     seed: int) -> torch.Tensor:
+    """[P] each observed pixel idx's squared error (display values, channels averaged) of `scene`'s render, noise
     taken out: the product of the errors of two independent halves of RENDER_SPP path samples (one seed: two
-    fields scored with it share their rays and random numbers)."""
+    materials scored with it share their rays and random numbers)."""
     g = torch.Generator(device=photos.device).manual_seed(seed)
     tracer = PathTracer(PathTracerConfig(max_bounces=max_bounces, rr_depth=max(max_bounces, 1), spp=RENDER_SPP))
     rays = photos.rays(idx, RENDER_SPP, g)
     with torch.no_grad():
-        samples = tracer.render_rays(Scene(mesh, envmap, field, device=photos.device), rays.origins, rays.directions,
-                                     g).reshape(-1, RENDER_SPP, 3)  # fmt: skip
+        samples = tracer.render_rays(scene, rays.origins, rays.directions, g).reshape(-1, RENDER_SPP, 3)
     half = RENDER_SPP // 2
     scale = rays.exposure.unsqueeze(-1)
     a, b = (tonemap.apply(x.mean(1) * scale) - rays.target for x in (samples[:, :half], samples[:, half:]))
@@ -118,7 +110,8 @@ def appearance_start(basis: NeuralBasis, points: torch.Tensor, rho: torch.Tensor
     prototype; appearance_cells_<family> by family), appearance_error_pbr / appearance_error (the observed pixels'
     mean squared display error, noise taken out, of the PBR start / of each cell's choice)."""
     device = points.device
-    idx, seen = observed_pixels(mesh, photos, seed=seed)
+    scene = Scene(mesh, envmap, StartField(basis, start_at), device=device)  # one BVH; each candidate its material
+    idx, seen = observed_pixels(scene, photos, seed=seed)
     low = torch.as_tensor(mesh.vertices.min(0), dtype=torch.float32, device=device)
     high = torch.as_tensor(mesh.vertices.max(0), dtype=torch.float32, device=device)
     cells, cell = torch.unique(cell_index(seen, low, high), return_inverse=True)  # observed cells, renumbered
@@ -129,9 +122,11 @@ def appearance_start(basis: NeuralBasis, points: torch.Tensor, rho: torch.Tensor
 
     count = per_cell(torch.ones_like(cell, dtype=torch.float32))
     prototypes = family_prototypes(basis, seed)
-    fields = [StartField(basis, start_at)] + [StartField(basis, start_at, p) for p in prototypes]
-    errors = torch.stack([per_cell(candidate_errors(f, mesh, envmap, photos, idx, tonemap, max_bounces, seed + 1))
-                          for f in fields]) / count.clamp_min(1)  # [1 + F, C]
+    scores = []
+    for material in [StartField(basis, start_at)] + [StartField(basis, start_at, p) for p in prototypes]:
+        scene.material = material
+        scores.append(per_cell(candidate_errors(scene, photos, idx, tonemap, max_bounces, seed + 1)))
+    errors = torch.stack(scores) / count.clamp_min(1)  # [1 + F, C]
     best_error, best = errors[1:].min(0)
     taken = (best_error < errors[0] - CELL_MARGIN * errors[0].abs()) & (count >= MIN_CELL_PIXELS)  # [C]
     lookup = torch.full((GRID**3,), -1, dtype=torch.long, device=device)
