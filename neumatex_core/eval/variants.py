@@ -361,9 +361,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # faster. The extraction's default since 2026-12-05 (design note 81)
     "default_choose_v6_alone": DEFAULT_81,
     # ... the default with its neural start chosen by appearance, cell by cell, among the PBR start and the material
-    # families' prototypes (TTOConfig.appearance_start, tto/appearance_start.py). Against the default on objects 0, 1,
-    # 7, 9: PathTrace -0.80 / +1.19 / -0.14 / -0.18, Latents -4.24 / -0.44 / -0.10 / +0.21: no gain resolved, off
-    # (design note 86)
+    # families' prototypes (TTOConfig.appearance_start, tto/appearance_start.py). Against the default on the ten local
+    # benchmark objects PathTrace -0.12 +- 0.12, Relight -0.01 +- 0.23, BaseColor -0.14 +- 0.34, Latents -0.69 +- 0.74:
+    # no gain, off (design note 86)
     "default_appearance": {**DEFAULT_81, "appearance_start": True},
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
     # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
