@@ -112,14 +112,15 @@ def fit_start_to_pbr(neural: NeuralTriplane, pbr: PBRTriplane, mesh: Mesh, basis
     samples [P, 3] and the PBR start at any points (`pbr_start_at`), e.g. `appearance_start`."""
     points, _ = mesh.sample_surface(FIT_POINTS, seed=seed)
     points = points.to(neural.tensor.device)
-    with torch.no_grad():
-        v = pbr.gbuffer(points, None)
-        rho, latent = pbr_to_neural(basis, v[:, :3], v[:, 3], v[:, 4])
+    start_at = partial(pbr_start_at, pbr, basis)
+    rho, latent = start_at(points)
     if adjust is not None:
-        rho, latent = adjust(points, rho, latent, partial(pbr_start_at, pbr, basis))
+        rho, latent = adjust(points, rho, latent, start_at)
     error = fit_planes(neural, points, rho, latent, seed, steps, lr, batch)
     if bsdf_steps > 0:
-        refine_to_pbr_bsdf(neural, basis, points, v, seed, bsdf_steps)
+        with torch.no_grad():
+            values = pbr.gbuffer(points, None)
+        refine_to_pbr_bsdf(neural, basis, points, values, seed, bsdf_steps)
     return error
 
 
