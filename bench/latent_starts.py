@@ -31,11 +31,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import argument_parser, write_result  # noqa: E402
-from lmrm import pixel_families  # noqa: E402
 
 from neumatex_core.geometry.surface import SurfaceInteraction  # noqa: E402
 from neumatex_core.lighting.envmap import EnvironmentMap  # noqa: E402
-from neumatex_core.lmrm.data import build_cache, finished_objects, load_synth_object  # noqa: E402
+from neumatex_core.lmrm.data import build_cache, finished_objects, load_synth_object, pixel_families  # noqa: E402
 from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial, load_basis  # noqa: E402
 
 

@@ -32,7 +32,6 @@ G-buffers (positions at pixel centres). Measured in the same run:
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
 import time
@@ -55,11 +54,11 @@ from neumatex_core.lmrm.data import (  # noqa: E402
     lighting_cues,
     load_synth_object,
     prefiltered,
-    read_channels,
     to_camera_directions,
 )
 from neumatex_core.lmrm.inference import load_lmrm_from  # noqa: E402
 from neumatex_core.lmrm.model import RATIO_MAX  # noqa: E402
+from neumatex_core.materials.prior import FAMILIES  # noqa: E402
 
 RATIO_PIXELS = 40_000  # covered pixels per object kept for baseline (d)
 CHANNELS = ["rho_r", "rho_g", "rho_b", "l0", "l1", "l2", "l3", "l4", "l5"]
@@ -69,14 +68,6 @@ def _spearman(a: np.ndarray, b: np.ndarray) -> float:
     from scipy.stats import spearmanr
 
     return float(spearmanr(a, b).statistic)
-
-
-def pixel_families(folder: Path, views: int) -> tuple[list[str], torch.Tensor]:
-    """The material family of every region of the object in `folder`, and its views' region ids [V, H, W] (long)."""
-    families = [r["family"] for r in json.loads((folder / "material.json").read_text())["regions"]]
-    ids = [torch.from_numpy(read_channels(folder / "gbuffers" / f"{v:03d}_region.exr", ("region",))[..., 0].copy())
-           for v in range(views)]  # fmt: skip
-    return families, torch.stack(ids).round().long()
 
 
 class FamilyErrors:
@@ -219,10 +210,9 @@ def main() -> int:
             "own_mean_basecolor": psnr(t[None, :, :3].mean(1, keepdim=True).expand(1, t.shape[0], 3), t[None, :, :3]),
         }  # fmt: skip
         per_object.append(row)
-        names, regions = pixel_families(folder, m.shape[0])
-        covered_regions = regions[m]
-        for k, fam in enumerate(names):
-            inside = covered_regions == k
+        covered_family = obj.family[m]
+        for k, fam in enumerate(FAMILIES):
+            inside = covered_family == k
             if inside.any():
                 families.add(fam, rho[inside], mean[:3], t[inside, :3])
         err = torch.cat([rho, lat], -1) - t[:, :9]

@@ -118,7 +118,8 @@ def test_the_lmrm_benchmarks_family_table_pools_each_familys_pixels_over_objects
     # squared errors pooled over objects, PSNR = -10 log10(MSE) and the mean colours of prediction and truth.
     from conftest import ENVMAPS, MESHES
 
-    from neumatex_core.lmrm.data import load_synth_object
+    from neumatex_core.lmrm.data import load_synth_object, pixel_families
+    from neumatex_core.materials.prior import FAMILIES
     from neumatex_core.synth import SynthConfig, generate
 
     lmrm_bench = bench_module("lmrm")
@@ -127,8 +128,10 @@ def test_the_lmrm_benchmarks_family_table_pools_each_familys_pixels_over_objects
                          relight_maps=0, workers=1, progress=False, meshes=str(MESHES), envmaps=str(ENVMAPS)))
     folder = out / "test-000000"
     obj = load_synth_object(folder)
-    names, regions = lmrm_bench.pixel_families(folder, obj.mask.shape[0])
+    names, regions = pixel_families(folder, obj.mask.shape[0])
     assert regions.shape == obj.mask.shape and set(regions[obj.mask].unique().tolist()) <= set(range(len(names)))
+    # the object's per-pixel family (what the LMRM's family head learns) is its region's family
+    assert [FAMILIES[int(f)] for f in obj.family[obj.mask]] == [names[int(r)] for r in regions[obj.mask]]
     table = lmrm_bench.FamilyErrors()
     truth = torch.tensor([[0.2, 0.4, 0.6], [0.2, 0.4, 0.6], [0.0, 0.0, 0.0], [0.1, 0.1, 0.1]])
     pred = torch.tensor([[0.3, 0.4, 0.6], [0.1, 0.4, 0.6], [0.0, 0.0, 0.0], [0.1, 0.1, 0.1]])

@@ -229,6 +229,61 @@ def test_resident_objects_train_like_the_files_and_are_read_once(tiny_data, tmp_
     assert len(data_reads) <= 2 * n_objects < 4 * 2 * 2
 
 
+def test_the_family_head_learns_each_points_family_and_a_run_can_start_from_another_presets_weights(tiny_data,
+                                                                                                     tmp_path):
+    # LMRMConfig.family_head: a fourth decoder's logits, trained by cross-entropy against the family of each
+    # point's region (the cache's `family`, from gbuffers/NNN_region.exr and material.json).
+    from neumatex_core.lmrm.losses import LossWeights, lmrm_loss
+    from neumatex_core.lmrm.train import init_from
+    from neumatex_core.materials.prior import FAMILIES
+
+    ds = LMRMDataset([tiny_data], tiny_data.parent / "cache")
+    data = ds.load(0)
+    everything = ds.sample(0, torch.Generator().manual_seed(0), Augment.none(), 0)
+    assert torch.equal(everything.family, data["family"].long())  # all pixels, in order, with their family
+    families = [r["family"] for r in json.loads((ds.folders[0] / "material.json").read_text())["regions"]]
+    assert {FAMILIES[int(f)] for f in everything.family.unique()} <= set(families)
+    samples = [ds.sample(i, torch.Generator().manual_seed(i), Augment.none(), 512) for i in range(len(ds))]
+    labels = torch.cat([s.family for s in samples])
+    majority = float(labels.bincount().max()) / len(labels)
+    assert majority < 0.9  # the tiny set holds several families: telling them apart is something to learn
+
+    torch.manual_seed(0)
+    cfg = replace(LMRMConfig.preset("test"), family_head=True)
+    net = LMRMNet(cfg)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    weights = LossWeights(mat=1.0, unc=0.0, pbr=0.0, family=1.0)
+
+    def accuracy() -> float:
+        with torch.no_grad():
+            _, heads = net([s.inputs for s in samples], [s.points for s in samples])
+        return float((torch.cat([h.family for h in heads]).argmax(-1) == labels).float().mean())
+
+    for _ in range(80):
+        _, heads = net([s.inputs for s in samples], [s.points for s in samples])
+        loss = sum(lmrm_loss(h, s.targets, weights, family=s.family)[0] for h, s in zip(heads, samples, strict=True))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert accuracy() > majority + 0.5 * (1 - majority)  # at least half of what the majority guess gets wrong
+    with pytest.raises(ValueError, match="family"):
+        lmrm_loss(heads[0], samples[0].targets, weights)  # a head with logits needs the points' family
+    assert "family_head" not in LMRMConfig().to_dict() and LMRMConfig.from_dict(cfg.to_dict()) == cfg
+
+    # --init: a run of another preset starts from the matching tensors; the head the source lacks starts fresh.
+    train_lmrm(tiny_train(tiny_data, tmp_path / "plain", steps=1, pbr_steps=1))
+    source = load_file(str(tmp_path / "plain" / "lmrm.safetensors"))
+    torch.manual_seed(1)
+    fresh = LMRMNet(cfg)
+    family_before = {k: v.clone() for k, v in fresh.state_dict().items() if k.startswith("family_decoder")}
+    assert init_from(fresh, tmp_path / "plain" / "lmrm.safetensors") == len(source)
+    state = fresh.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in source.items())
+    assert family_before and all(torch.equal(state[k], v) for k, v in family_before.items())
+    with pytest.raises(ValueError, match="cannot read"):
+        init_from(fresh, tmp_path / "missing.safetensors")
+
+
 def test_torchrun_one_process_matches_plain_training(tiny_data, tmp_path):
     plain = tiny_train(tiny_data, tmp_path / "plain", steps=2, pbr_steps=1)
     train_lmrm(plain)

@@ -3,7 +3,8 @@
 - `MaterialDecoder` (M_mat): rho_d [N, 3] in [0, 1] (sigmoid) and latent l [N, K] in [-1, 1] (tanh), K the
   basis's latent size (6; `with_latent_dim` adapts a decoder to a basis of another size);
 - `UncertaintyDecoder` (M_unc): 9 log-variances [N, 9] (rho_d then l), unbounded;
-- `PBRDecoder` (the LMRM's PBR head): base colour [N, 3], roughness [N], metallic [N], all in [0, 1] (sigmoid).
+- `PBRDecoder` (the LMRM's PBR head): base colour [N, 3], roughness [N], metallic [N], all in [0, 1] (sigmoid);
+- `FamilyDecoder` (the LMRM's family head): logits [N, 8] of the material families (materials/prior.py FAMILIES).
 
 Each is Linear+SiLU x `layers` (width `hidden`) with a linear output; `architecture()` gives the constructor
 arguments, so an asset can rebuild the module from its record. `module_id` names a decoder by its class and the
@@ -19,6 +20,7 @@ import torch
 from torch import nn
 
 from neumatex_core.materials.neural_basis import LATENT_DIM, mlp
+from neumatex_core.materials.prior import FAMILIES
 
 N_MATERIAL = 3 + LATENT_DIM  # rho_d + latent: the material G-buffer's channels
 
@@ -96,7 +98,18 @@ class PBRDecoder(_Decoder):
         return out[:, :3], out[:, 3], out[:, 4]
 
 
-DECODERS: dict[str, type[_Decoder]] = {cls.kind: cls for cls in (MaterialDecoder, UncertaintyDecoder, PBRDecoder)}
+class FamilyDecoder(_Decoder):
+    """The LMRM's family head: features [N, F] -> logits [N, len(FAMILIES)] of each point's material family."""
+
+    kind = "family"
+    n_out = len(FAMILIES)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.net(features)
+
+
+DECODERS: dict[str, type[_Decoder]] = {cls.kind: cls for cls in
+                                       (MaterialDecoder, UncertaintyDecoder, PBRDecoder, FamilyDecoder)}  # fmt: skip
 
 
 def state_hash(module: nn.Module) -> str:

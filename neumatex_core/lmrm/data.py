@@ -2,9 +2,10 @@
 augmented training samples.
 
 `load_synth_object(folder)` reads one object at its own resolution (the 23 tonemapped views, masks, position /
-normal / base colour / latent / PBR G-buffers, cameras, environment map). `build_cache` keeps what training needs
-of its covered pixels in one small `.pt` file (sRGB uint8, positions, normals, directions to the camera, lighting
-cues, 14 target channels), made once per object. `LMRMDataset.sample` turns a cached object into network inputs
+normal / base colour / latent / PBR G-buffers, each pixel's material family, cameras, environment map).
+`build_cache` keeps what training needs of its covered pixels in one small `.pt` file (sRGB uint8, positions,
+normals, directions to the camera, lighting cues, 14 target channels, the family's index in `FAMILIES`), made once
+per object. `LMRMDataset.sample` turns a cached object into network inputs
 and supervised points, with augmentation (training): a random rotation of the world about +Y (positions, normals
 and directions; pixel colours and cues are unchanged, so the sample stays physically consistent), an exposure
 change (linear pixels and cues scaled together, pixels re-clipped), dropping views, and hiding the lighting.
@@ -32,10 +33,12 @@ from neumatex_core.imageio import read_image
 from neumatex_core.lighting.envmap import EnvironmentMap, envmap_rgb
 from neumatex_core.lighting.prefilter import PrefilteredLighting
 from neumatex_core.lmrm.model import ObjectInputs, view_inputs
+from neumatex_core.materials.prior import FAMILIES
 from neumatex_core.synth.writer import GBUFFER_CHANNELS
 
 N_TARGETS = 14  # rho_d (3), latent (6), PBR base colour (3), roughness, metallic
-CACHE_VERSION = 2  # 2: PBR targets in the writer's channel order (version 1 had OpenEXR's alphabetical order)
+# 2: PBR targets in the writer's channel order (version 1 had OpenEXR's alphabetical order); 3: the pixels' family
+CACHE_VERSION = 3
 LIGHTING_GRID = (16, 48)  # PrefilteredLighting (grid, source): coarse cues, 0.5 s per object on one core
 
 
@@ -86,7 +89,8 @@ class SynthObject:
     """One synthetic object at its own resolution (V views of H x W).
 
     rgb [V, H, W, 3] tonemapped sRGB in [0, 1]; mask [V, H, W] bool; position, normal [V, H, W, 3] world;
-    targets [V, H, W, 14] (rho_d, latent, PBR base colour, roughness, metallic); cameras; envmap.
+    targets [V, H, W, 14] (rho_d, latent, PBR base colour, roughness, metallic); family [V, H, W] long, the index
+    in `FAMILIES` of each pixel's region's family; cameras; envmap.
     """
 
     id: str
@@ -96,8 +100,18 @@ class SynthObject:
     position: torch.Tensor
     normal: torch.Tensor
     targets: torch.Tensor
+    family: torch.Tensor
     cameras: list[Camera]
     envmap: EnvironmentMap
+
+
+def pixel_families(folder: Path, views: int) -> tuple[list[str], torch.Tensor]:
+    """The material family of every region of the object in `folder` (material.json), and its views' region ids
+    [V, H, W] long (gbuffers/NNN_region.exr)."""
+    families = [r["family"] for r in json.loads((folder / "material.json").read_text())["regions"]]
+    ids = [torch.from_numpy(read_channels(folder / "gbuffers" / f"{v:03d}_region.exr", ("region",))[..., 0].copy())
+           for v in range(views)]  # fmt: skip
+    return families, torch.stack(ids).round().long()
 
 
 def load_synth_object(folder: Path) -> SynthObject:
@@ -118,6 +132,9 @@ def load_synth_object(folder: Path) -> SynthObject:
         tgt = np.stack([np.concatenate([read_channels(folder / b[k], GBUFFER_CHANNELS[k])
                                         for k in ("basecolor", "latent", "pbr")], axis=-1) for b in buffers])
         env_pixels = read_image(folder / top["envmap"])
+        names, regions = pixel_families(folder, len(frames))
+        family_of_region = torch.tensor([FAMILIES.index(n) for n in names], dtype=torch.long)
+        family = family_of_region[regions.clamp(0, len(names) - 1)]
     except (OSError, ValueError, KeyError) as exc:
         raise LMRMDataError(f"{folder}: cannot read the object's images ({exc})") from None
     if tgt.shape[-1] != N_TARGETS:
@@ -126,7 +143,7 @@ def load_synth_object(folder: Path) -> SynthObject:
                          float(top.get("envmap_scale", 1.0)))  # fmt: skip
     t = torch.from_numpy
     return SynthObject(folder.name, folder, t(rgb).float(), t(mask), t(pos).float(), t(nrm).float(), t(tgt).float(),
-                       cams, env)  # fmt: skip
+                       family, cams, env)  # fmt: skip
 
 
 def to_camera_directions(position: torch.Tensor, cameras: list[Camera]) -> torch.Tensor:
@@ -169,6 +186,7 @@ def build_cache(folder: Path, cache_dir: Path) -> Path:
         "version": CACHE_VERSION, "id": obj.id, "meta_sha256": meta_hash, "mask": m,
         "rgb": (obj.rgb[m] * 255).round().clamp(0, 255).to(torch.uint8), "position": obj.position[m],
         "normal": obj.normal[m], "to_camera": to_cam[m], "cues": cues.half(), "targets": obj.targets[m].half(),
+        "family": obj.family[m].to(torch.uint8),
     }  # fmt: skip
     cache_dir.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(f".{os.getpid()}.tmp")  # unique: several processes may cache the same object
@@ -198,11 +216,13 @@ def _rot_y(angle: float) -> torch.Tensor:
 
 @dataclass
 class Sample:
-    """One training sample: the network inputs, query points [N, 3] and their targets [N, 14]."""
+    """One training sample: the network inputs, query points [N, 3], their targets [N, 14] and their family [N]
+    (long, index in `FAMILIES`)."""
 
     inputs: ObjectInputs
     points: torch.Tensor
     targets: torch.Tensor
+    family: torch.Tensor
 
 
 def make_sample(data: dict[str, Any], generator: torch.Generator, augment: Augment, n_points: int) -> Sample:
@@ -240,11 +260,11 @@ def make_sample(data: dict[str, Any], generator: torch.Generator, augment: Augme
     inputs = view_inputs(image(rgb)[keep], mask[keep], image(nrm)[keep], image(to_cam)[keep],
                          image(cues)[keep] if cues is not None else None)  # fmt: skip
     obj = ObjectInputs(inputs, mask[keep], image(pos)[keep])
-    targets = data["targets"].float()
+    targets, family = data["targets"].float(), data["family"].long()
     if 0 < n_points < pos.shape[0]:
         pick = torch.randperm(pos.shape[0], generator=generator)[:n_points].to(device)
-        return Sample(obj, pos[pick], targets[pick])
-    return Sample(obj, pos, targets)
+        return Sample(obj, pos[pick], targets[pick], family[pick])
+    return Sample(obj, pos, targets, family)
 
 
 class LMRMDataset:

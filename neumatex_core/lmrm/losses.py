@@ -1,4 +1,5 @@
-"""LMRM training losses (docs/architecture.md section 5): L = w_mat L_mat + w_unc beta-NLL + w_pbr L_pbr.
+"""LMRM training losses (docs/architecture.md section 5): L = w_mat L_mat + w_unc beta-NLL + w_pbr L_pbr
+(+ w_family L_family).
 
 - L_mat: mean squared error of the decoded material against the reference, in the metrics' units:
   0.5 (MSE(rho_d) + MSE((l + 1) / 2)), so each half is what PSNR_BaseColor / PSNR_Latents measure.
@@ -6,6 +7,8 @@
   stopgrad(sigma^2)^beta * (log sigma^2 + (y - stopgrad(mu))^2 / sigma^2) / 2. The mean is detached, so the
   uncertainty head never pulls the material prediction; beta = 0.5 keeps the weight of hard points from vanishing.
 - L_pbr: MSE of the PBR head (base colour, roughness, metallic) against the synthetic PBR fit.
+- L_family: cross-entropy of the family head's logits against each point's material family (models with
+  `LMRMConfig.family_head`).
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from neumatex_core.lmrm.model import Heads
 
@@ -31,17 +35,20 @@ def beta_nll(mean: torch.Tensor, log_var: torch.Tensor, target: torch.Tensor, be
 
 @dataclass
 class LossWeights:
-    """Stage weights: stage 1 (PBR pre-training) is (0, 0, 1); stage 2 (neural material) (1, lambda_unc, w_pbr)."""
+    """Stage weights: stage 1 (PBR pre-training) is (0, 0, 1); stage 2 (neural material) (1, lambda_unc, w_pbr,
+    lambda_family)."""
 
     mat: float
     unc: float
     pbr: float
+    family: float = 0.0
 
 
-def lmrm_loss(heads: Heads, targets: torch.Tensor, w: LossWeights, beta: float = 0.5
-              ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Total loss (scalar) and its parts for heads at N points and targets [N, 14] (rho_d, l, PBR). Parts with
-    weight 0 still enter (times 0), so every parameter gets a (zero) gradient, as DistributedDataParallel wants."""
+def lmrm_loss(heads: Heads, targets: torch.Tensor, w: LossWeights, beta: float = 0.5,
+              family: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Total loss (scalar) and its parts for heads at N points, targets [N, 14] (rho_d, l, PBR) and the points'
+    family [N] (long, index in FAMILIES; needed when the heads have family logits). Parts with weight 0 still
+    enter (times 0), so every parameter gets a (zero) gradient, as DistributedDataParallel wants."""
     rho, lat, pbr = targets[:, :3], targets[:, 3:9], targets[:, 9:14]
     mse_rho = ((heads.rho_d - rho) ** 2).mean()
     mse_lat = (((heads.latent - lat) / 2) ** 2).mean()
@@ -50,6 +57,13 @@ def lmrm_loss(heads: Heads, targets: torch.Tensor, w: LossWeights, beta: float =
     nll = beta_nll(mean, heads.log_var, targets[:, :9], beta).mean()
     l_pbr = ((heads.pbr - pbr) ** 2).mean()
     total = w.mat * l_mat + w.unc * nll + w.pbr * l_pbr
-    parts = {k: float(v.detach()) for k, v in
-             (("l_mat", l_mat), ("mse_rho", mse_rho), ("mse_lat", mse_lat), ("nll", nll), ("l_pbr", l_pbr))}
+    named = [("l_mat", l_mat), ("mse_rho", mse_rho), ("mse_lat", mse_lat), ("nll", nll), ("l_pbr", l_pbr)]
+    if heads.family is not None:
+        if family is None:
+            raise ValueError("the heads have family logits: lmrm_loss needs the points' family")
+        l_family = F.cross_entropy(heads.family, family)
+        total = total + w.family * l_family
+        accuracy = (heads.family.argmax(-1) == family).float().mean()
+        named += [("l_family", l_family), ("family_accuracy", accuracy)]
+    parts = {k: float(v.detach()) for k, v in named}
     return total, parts

@@ -17,7 +17,9 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
    square of the shading-normalised colour itself (a fixed colour path to the decoders, nothing learnt; the U-Net
    makes the other C - 6; docs/lmrm.md).
 5. Decoders from `neumatex_core.fields`: `MaterialDecoder` (rho_d, latent), `UncertaintyDecoder` (9 log-variances),
-   `PBRDecoder` (base colour, roughness, metallic), all reading `Triplane.features(points)` [N, 3C].
+   `PBRDecoder` (base colour, roughness, metallic), all reading `Triplane.features(points)` [N, 3C]. With
+   `LMRMConfig.family_head` a `FamilyDecoder` also reads them: the logits of the point's material family (a training
+   signal that makes the triplane tell the families apart; docs/lmrm.md).
 
 `LMRMConfig` sizes everything; `LMRMConfig.preset("gpu")` is the larger configuration of the same code.
 """
@@ -34,7 +36,7 @@ from torch.func import functional_call
 
 from neumatex_core.capture.tonemap import srgb_eotf
 from neumatex_core.config import check_known_keys
-from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder, UncertaintyDecoder
+from neumatex_core.fields.decoders import FamilyDecoder, MaterialDecoder, PBRDecoder, UncertaintyDecoder
 from neumatex_core.fields.triplane import PLANE_AXES, Triplane
 from neumatex_core.lighting.prefilter import KAPPAS
 
@@ -42,7 +44,7 @@ N_CUES = 3 * (1 + len(KAPPAS))  # diffuse RGB + glossy RGB per lobe width
 RATIO_INPUT = slice(3 + 1 + 3 + 3 + N_CUES, 3 + 1 + 3 + 3 + N_CUES + 3)  # the ratio's channels in view_inputs
 IN_CHANNELS = RATIO_INPUT.stop + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
 RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
-LMRMPreset = Literal["cpu", "cpu-ratio", "gpu", "test"]  # LMRMConfig.preset's names
+LMRMPreset = Literal["cpu", "cpu-ratio", "cpu-family", "gpu", "test"]  # LMRMConfig.preset's names
 LMRM_PRESETS: tuple[str, ...] = get_args(LMRMPreset)
 RATIO_PATH_CHANNELS = 6  # LMRMConfig.ratio_path: the lifted ratio's mean and mean square (RGB each)
 
@@ -63,6 +65,9 @@ class LMRMConfig:
     # the triplane's first RATIO_PATH_CHANNELS channels hold the lifted shading-normalised colour (module docstring,
     # step 4): an MLP on those statistics alone beats the learnt path on the test split (docs/lmrm.md)
     ratio_path: bool = False
+    # a fourth decoder classifies each point's material family (FAMILIES), trained with cross-entropy: the latents'
+    # error is mostly which family a region is (docs/lmrm.md)
+    family_head: bool = False
 
     def __post_init__(self) -> None:
         if self.ratio_path and self.triplane_channels <= RATIO_PATH_CHANNELS:
@@ -72,8 +77,8 @@ class LMRMConfig:
     @classmethod
     def preset(cls, name: str) -> LMRMConfig:
         """The named config (`LMRM_PRESET_FIELDS`): 'cpu' (the defaults), 'cpu-ratio' (the same with the fixed colour
-        path, `ratio_path`), 'gpu' (about 30x the compute: larger views, planes and widths) or 'test' (a few thousand
-        parameters, for unit tests)."""
+        path, `ratio_path`), 'cpu-family' (cpu-ratio with the family head, `family_head`), 'gpu' (about 30x the
+        compute: larger views, planes and widths) or 'test' (a few thousand parameters, for unit tests)."""
         if name not in LMRM_PRESET_FIELDS:
             raise ValueError(f"unknown LMRM preset {name!r} (expected one of {', '.join(LMRM_PRESETS)})")
         return cls(**LMRM_PRESET_FIELDS[name])
@@ -84,10 +89,12 @@ class LMRMConfig:
         return cls(**data)
 
     def to_dict(self) -> dict[str, Any]:
-        """The fields; `ratio_path` only when on, so the records of models made before it stay as they are."""
+        """The fields; `ratio_path` and `family_head` only when on, so the records of models made before them stay as
+        they are."""
         out = asdict(self)
-        if not self.ratio_path:
-            del out["ratio_path"]
+        for flag in ("ratio_path", "family_head"):
+            if not out[flag]:
+                del out[flag]
         return out
 
 
@@ -95,6 +102,7 @@ class LMRMConfig:
 LMRM_PRESET_FIELDS: dict[str, dict[str, Any]] = {
     "cpu": {},
     "cpu-ratio": {"ratio_path": True},
+    "cpu-family": {"ratio_path": True, "family_head": True},
     "gpu": {"view_resolution": 128, "view_channels": 64, "view_layers": 3, "feature_channels": 32,
             "plane_resolution": 96, "plane_channels": 64, "triplane_channels": 32, "decoder_hidden": 128},
     "test": {"view_resolution": 24, "view_channels": 8, "view_layers": 1, "feature_channels": 4, "plane_resolution": 8,
@@ -219,12 +227,13 @@ class ObjectInputs:
 @dataclass
 class Heads:
     """Decoded G-buffers at N query points: rho_d [N, 3], latent [N, 6], log_var [N, 9], pbr [N, 5]
-    (base colour, roughness, metallic)."""
+    (base colour, roughness, metallic); family [N, len(FAMILIES)] logits, None without the family head."""
 
     rho_d: torch.Tensor
     latent: torch.Tensor
     log_var: torch.Tensor
     pbr: torch.Tensor
+    family: torch.Tensor | None = None
 
 
 class LMRMNet(nn.Module):
@@ -242,6 +251,8 @@ class LMRMNet(nn.Module):
         self.material_decoder = MaterialDecoder(n_features, cfg.decoder_hidden, cfg.decoder_layers)
         self.uncertainty_decoder = UncertaintyDecoder(n_features, cfg.decoder_hidden, cfg.decoder_layers)
         self.pbr_decoder = PBRDecoder(n_features, cfg.decoder_hidden, cfg.decoder_layers)
+        self.family_decoder = (FamilyDecoder(n_features, cfg.decoder_hidden, cfg.decoder_layers)
+                               if cfg.family_head else None)  # fmt: skip
         # Shape holder for functional_call; kept out of the module tree (not a parameter, not in the state dict).
         object.__setattr__(self, "_template", Triplane(cfg.triplane_channels, cfg.plane_resolution, init_std=0.0))
 
@@ -278,7 +289,8 @@ class LMRMNet(nn.Module):
         rho_d, latent = self.material_decoder(features)
         base, rough, metal = self.pbr_decoder(features)
         pbr = torch.cat([base, rough.unsqueeze(-1), metal.unsqueeze(-1)], dim=-1)
-        return Heads(rho_d, latent, self.uncertainty_decoder(features), pbr)
+        family = self.family_decoder(features) if self.family_decoder is not None else None
+        return Heads(rho_d, latent, self.uncertainty_decoder(features), pbr, family)
 
     def forward(self, objects: list[ObjectInputs], points: list[torch.Tensor]) -> tuple[torch.Tensor, list[Heads]]:
         planes = self.planes(objects)

@@ -60,6 +60,10 @@ class TrainLMRMConfig:
     ema: float = option(0.98, "decay of the exponential moving average of the weights (evaluated and shipped)")
     lambda_unc: float = option(0.1, "weight of the beta-NLL uncertainty loss")
     lambda_pbr: float = option(0.1, "weight of the PBR loss in the neural stage")
+    lambda_family: float = option(0.1, "weight of the family head's cross-entropy in the neural stage (models with a "
+                                       "family head, e.g. --preset cpu-family)")
+    init: str = option("", "start a new run from these weights (an lmrm.safetensors, its .json beside it): tensors "
+                           "of the same name and shape are copied, heads the model adds start fresh")
     beta: float = option(0.5, "beta of the beta-NLL")
     clip: float = option(1.0, "gradient norm clipping")
     seed: int = option(0, "seed of initialisation, data order and augmentation")
@@ -114,7 +118,7 @@ def _lr(cfg: TrainLMRMConfig, step: int) -> float:
 def _weights(cfg: TrainLMRMConfig, step: int) -> LossWeights:
     if step < cfg.pbr_steps:
         return LossWeights(mat=0.0, unc=0.0, pbr=1.0)
-    return LossWeights(mat=1.0, unc=cfg.lambda_unc, pbr=cfg.lambda_pbr)
+    return LossWeights(mat=1.0, unc=cfg.lambda_unc, pbr=cfg.lambda_pbr, family=cfg.lambda_family)
 
 
 def _generator(seed: int, *keys: int) -> torch.Generator:
@@ -168,11 +172,30 @@ class _Order:
         return picked
 
 
+def init_from(net: LMRMNet, weights: Path) -> int:
+    """Copy into `net` the tensors of the LMRM weights file whose name and shape match (another preset's model: a
+    head it lacks keeps its fresh initialisation); returns how many were copied. Raises ValueError naming the file
+    when it cannot be read or shares no tensor with `net`."""
+    from safetensors.torch import load_file
+
+    try:
+        source = load_file(str(weights))
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise ValueError(f"{weights}: cannot read LMRM weights to start from ({exc})") from None
+    state = net.state_dict()
+    matching = {k: v for k, v in source.items() if k in state and state[k].shape == v.shape}
+    if not matching:
+        raise ValueError(f"{weights}: no tensor matches this model's names and shapes (another model size?)")
+    state.update({k: v.to(state[k].device, state[k].dtype) for k, v in matching.items()})
+    net.load_state_dict(state)
+    return len(matching)
+
+
 def _to(sample: Sample, device: torch.device) -> Sample:
     s = sample
     s.inputs.inputs, s.inputs.mask = s.inputs.inputs.to(device), s.inputs.mask.to(device)
     s.inputs.position = s.inputs.position.to(device)
-    s.points, s.targets = s.points.to(device), s.targets.to(device)
+    s.points, s.targets, s.family = s.points.to(device), s.targets.to(device), s.family.to(device)
     return s
 
 
@@ -180,7 +203,8 @@ def _to(sample: Sample, device: torch.device) -> Sample:
 def evaluate(net: LMRMNet, dataset: LMRMDataset, device: torch.device, mean: torch.Tensor | None = None
              ) -> dict[str, float]:
     """Mean PSNR_BaseColor / PSNR_Latents ((l+1)/2) over the covered pixels of each object's cached views, and the
-    same for the constant `mean` material [14] when given."""
+    same for the constant `mean` material [14] when given; with a family head, the share of pixels whose family it
+    names right."""
     was_training = net.training
     net.eval()
     rows: dict[str, list[float]] = {"psnr_basecolor": [], "psnr_latents": [], "mean_psnr_basecolor": [],
@@ -191,6 +215,8 @@ def evaluate(net: LMRMNet, dataset: LMRMDataset, device: torch.device, mean: tor
         t = s.targets
         rows["psnr_basecolor"].append(psnr(heads.rho_d[None], t[None, :, :3]))
         rows["psnr_latents"].append(psnr((heads.latent[None] + 1) / 2, (t[None, :, 3:9] + 1) / 2))
+        if heads.family is not None:
+            rows.setdefault("family_accuracy", []).append(float((heads.family.argmax(-1) == s.family).float().mean()))
         if mean is not None:
             m = mean.to(device).expand_as(t)
             rows["mean_psnr_basecolor"].append(psnr(m[None, :, :3], t[None, :, :3]))
@@ -254,6 +280,11 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
     validation: list[dict[str, Any]] = []
     step = 0
     ckpt = out / "checkpoint.pt"
+    if cfg.init:
+        copied = init_from(net, Path(cfg.init))
+        ema.load_state_dict(net.state_dict())
+        if rank == 0:
+            print(f"initialised {copied} of {len(net.state_dict())} tensors from {cfg.init}")
     if cfg.resume and ckpt.is_file():
         state = torch.load(ckpt, map_location=device, weights_only=False)
         if state["model_config"] != model_cfg.to_dict():
@@ -302,7 +333,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
         total = torch.zeros((), device=device)
         parts: dict[str, float] = {}
         for h, s in zip(heads, samples, strict=True):
-            loss, p = lmrm_loss(h, s.targets, w, cfg.beta)
+            loss, p = lmrm_loss(h, s.targets, w, cfg.beta, s.family)
             total = total + loss / len(samples)
             for k, v in p.items():
                 parts[k] = parts.get(k, 0.0) + v / len(samples)
