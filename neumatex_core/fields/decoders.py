@@ -4,7 +4,8 @@
   basis's latent size (6; `with_latent_dim` adapts a decoder to a basis of another size);
 - `UncertaintyDecoder` (M_unc): 9 log-variances [N, 9] (rho_d then l), unbounded;
 - `PBRDecoder` (the LMRM's PBR head): base colour [N, 3], roughness [N], metallic [N], all in [0, 1] (sigmoid);
-- `FamilyDecoder` (the LMRM's family head): logits [N, 8] of the material families (materials/prior.py FAMILIES).
+- `FamilyDecoder` (the LMRM's family head, not part of assets): logits [N, 8] of the material families
+  (materials/prior.py FAMILIES).
 
 Each is Linear+SiLU x `layers` (width `hidden`) with a linear output; `architecture()` gives the constructor
 arguments, so an asset can rebuild the module from its record. `module_id` names a decoder by its class and the
@@ -108,8 +109,8 @@ class FamilyDecoder(_Decoder):
         return self.net(features)
 
 
-DECODERS: dict[str, type[_Decoder]] = {cls.kind: cls for cls in
-                                       (MaterialDecoder, UncertaintyDecoder, PBRDecoder, FamilyDecoder)}  # fmt: skip
+# the decoders an asset may hold (assets/package.py); the family head is the LMRM's training signal only
+DECODERS: dict[str, type[_Decoder]] = {cls.kind: cls for cls in (MaterialDecoder, UncertaintyDecoder, PBRDecoder)}
 
 
 def state_hash(module: nn.Module) -> str:

@@ -18,8 +18,8 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
    makes the other C - 6; docs/lmrm.md).
 5. Decoders from `neumatex_core.fields`: `MaterialDecoder` (rho_d, latent), `UncertaintyDecoder` (9 log-variances),
    `PBRDecoder` (base colour, roughness, metallic), all reading `Triplane.features(points)` [N, 3C]. With
-   `LMRMConfig.family_head` a `FamilyDecoder` also reads them: the logits of the point's material family (a training
-   signal that makes the triplane tell the families apart; docs/lmrm.md).
+   `LMRMConfig.family_head` a `FamilyDecoder` also reads them: the logits of the point's material family, a training
+   signal meant to make the triplane tell the families apart (measured: no gain; docs/lmrm.md).
 
 `LMRMConfig` sizes everything; `LMRMConfig.preset("gpu")` is the larger configuration of the same code.
 """
@@ -66,7 +66,7 @@ class LMRMConfig:
     # step 4): an MLP on those statistics alone beats the learnt path on the test split (docs/lmrm.md)
     ratio_path: bool = False
     # a fourth decoder classifies each point's material family (FAMILIES), trained with cross-entropy: the latents'
-    # error is mostly which family a region is (docs/lmrm.md)
+    # error is mostly which family a region is; the head did not reduce it (docs/lmrm.md)
     family_head: bool = False
 
     def __post_init__(self) -> None:

@@ -62,8 +62,8 @@ class TrainLMRMConfig:
     lambda_pbr: float = option(0.1, "weight of the PBR loss in the neural stage")
     lambda_family: float = option(0.1, "weight of the family head's cross-entropy in the neural stage (models with a "
                                        "family head, e.g. --preset cpu-family)")
-    init: str = option("", "start a new run from these weights (an lmrm.safetensors, its .json beside it): tensors "
-                           "of the same name and shape are copied, heads the model adds start fresh")
+    init: str = option("", "start a new run from these weights (an lmrm.safetensors): tensors of the same name and "
+                           "shape are copied, heads the model adds start fresh (a checkpoint in --out still resumes)")
     beta: float = option(0.5, "beta of the beta-NLL")
     clip: float = option(1.0, "gradient norm clipping")
     seed: int = option(0, "seed of initialisation, data order and augmentation")
