@@ -33,6 +33,11 @@ def beta_nll(mean: torch.Tensor, log_var: torch.Tensor, target: torch.Tensor, be
     return (weight * nll).mean(0)
 
 
+def family_accuracy(logits: torch.Tensor, family: torch.Tensor) -> torch.Tensor:
+    """Share (scalar) of the N points whose most likely family in logits [N, len(FAMILIES)] is theirs, family [N]."""
+    return (logits.argmax(-1) == family).float().mean()
+
+
 @dataclass
 class LossWeights:
     """Stage weights: stage 1 (PBR pre-training) is (0, 0, 1); stage 2 (neural material) (1, lambda_unc, w_pbr,
@@ -63,7 +68,6 @@ def lmrm_loss(heads: Heads, targets: torch.Tensor, w: LossWeights, beta: float =
             raise ValueError("the heads have family logits: lmrm_loss needs the points' family")
         l_family = F.cross_entropy(heads.family, family)
         total = total + w.family * l_family
-        accuracy = (heads.family.argmax(-1) == family).float().mean()
-        named += [("l_family", l_family), ("family_accuracy", accuracy)]
+        named += [("l_family", l_family), ("family_accuracy", family_accuracy(heads.family, family))]
     parts = {k: float(v.detach()) for k, v in named}
     return total, parts

@@ -36,7 +36,7 @@ from neumatex_core.config import option
 from neumatex_core.eval.metrics import psnr
 from neumatex_core.lmrm.data import Augment, LMRMDataset, Sample, make_sample, training_mean
 from neumatex_core.lmrm.inference import DATA_DIR, save_lmrm
-from neumatex_core.lmrm.losses import LossWeights, lmrm_loss
+from neumatex_core.lmrm.losses import LossWeights, family_accuracy, lmrm_loss
 from neumatex_core.lmrm.model import LMRMConfig, LMRMNet, LMRMPreset
 from neumatex_core.lmrm.plots import line_chart
 from neumatex_core.materials.neural_basis import load_basis
@@ -186,8 +186,7 @@ def init_from(net: LMRMNet, weights: Path) -> int:
     matching = {k: v for k, v in source.items() if k in state and state[k].shape == v.shape}
     if not matching:
         raise ValueError(f"{weights}: no tensor matches this model's names and shapes (another model size?)")
-    state.update({k: v.to(state[k].device, state[k].dtype) for k, v in matching.items()})
-    net.load_state_dict(state)
+    net.load_state_dict(matching, strict=False)  # copies into the existing tensors (their device and dtype)
     return len(matching)
 
 
@@ -216,7 +215,7 @@ def evaluate(net: LMRMNet, dataset: LMRMDataset, device: torch.device, mean: tor
         rows["psnr_basecolor"].append(psnr(heads.rho_d[None], t[None, :, :3]))
         rows["psnr_latents"].append(psnr((heads.latent[None] + 1) / 2, (t[None, :, 3:9] + 1) / 2))
         if heads.family is not None:
-            rows.setdefault("family_accuracy", []).append(float((heads.family.argmax(-1) == s.family).float().mean()))
+            rows.setdefault("family_accuracy", []).append(float(family_accuracy(heads.family, s.family)))
         if mean is not None:
             m = mean.to(device).expand_as(t)
             rows["mean_psnr_basecolor"].append(psnr(m[None, :, :3], t[None, :, :3]))
