@@ -30,7 +30,7 @@ from neumatex_core.geometry.mesh import load_mesh
 from neumatex_core.lmrm import LMRM, LMRMConfig, LMRMError, LMRMNet, LMRMPrediction, load_lmrm, load_lmrm_from
 from neumatex_core.lmrm.data import Augment, LMRMDataset, load_synth_object
 from neumatex_core.lmrm.inference import DEFAULT_RECORD, DEFAULT_WEIGHTS
-from neumatex_core.lmrm.losses import beta_nll
+from neumatex_core.lmrm.losses import MSE_FLOOR, beta_nll, object_weights
 from neumatex_core.lmrm.model import IN_CHANNELS, RATIO_INPUT, RATIO_MAX, lift_to_planes
 from neumatex_core.lmrm.train import TrainLMRMConfig, train_lmrm
 from neumatex_core.materials.neural_basis import load_basis
@@ -179,6 +179,24 @@ def test_beta_nll_gradients():
     assert torch.allclose(lv3.grad, torch.full((5, 1), 0.5 * (1 - 4.0) / 5))
 
 
+def test_object_weights_give_the_gradient_of_mean_log_mse():
+    """The objects' MSEs weighted by object_weights move the model as mean log-MSE (mean PSNR over objects) does."""
+    torch.manual_seed(1)
+    target = torch.rand(3, 50)
+    pred = (target + torch.randn(3, 50) * torch.tensor([[0.03], [0.1], [0.5]])).requires_grad_(True)  # 3 objects
+    mse = ((pred - target) ** 2).mean(1)  # [3]
+    w = object_weights(mse[:, None])[:, 0]
+    assert w.requires_grad is False and abs(float(w.mean()) - 1.0) < 1e-6
+    assert float(w[0]) > float(w[1]) > float(w[2])  # the object with the smallest error weighs most
+    (grad_w,) = torch.autograd.grad((w * mse).sum(), pred, retain_graph=True)
+    (grad_log,) = torch.autograd.grad(torch.log(mse).sum(), pred)
+    scale = 1.0 / float((1.0 / mse.detach()).mean())  # the batch's common factor
+    assert torch.allclose(grad_w, scale * grad_log, rtol=1e-5, atol=1e-9)
+    # An MSE under the floor weighs as the floor; columns (rho_d, latent) are weighted separately.
+    two = object_weights(torch.tensor([[1e-8, 0.2], [MSE_FLOOR, 0.1]]))
+    assert torch.allclose(two[:, 0], torch.ones(2)) and torch.allclose(two[:, 1], torch.tensor([2 / 3, 4 / 3]))
+
+
 # -- training ----------------------------------------------------------------------------------------------
 def test_training_is_deterministic_and_resumes_exactly(tiny_data, tmp_path):
     full = train_lmrm(tiny_train(tiny_data, tmp_path / "full"))
@@ -202,6 +220,23 @@ def test_training_is_deterministic_and_resumes_exactly(tiny_data, tmp_path):
     s2 = ds.sample(0, torch.Generator().manual_seed(1), Augment.none(), 128)
     assert s1.points.shape == s2.points.shape == (128, 3)
     assert s1.inputs.inputs.shape[0] >= 16 and s2.inputs.inputs.shape[0] == 23
+
+
+def test_log_mse_training_weights_each_objects_errors_by_their_inverse(tiny_data, tmp_path):
+    """--log-mse: the same model and samples, but each object's MSEs weighted by their inverse (mean 1), so the
+    material loss is the harmonic mean of the objects' MSEs, below their plain mean, and training then differs."""
+    plain = train_lmrm(tiny_train(tiny_data, tmp_path / "plain", steps=4, pbr_steps=2))
+    logged = train_lmrm(tiny_train(tiny_data, tmp_path / "log", steps=4, pbr_steps=2, log_mse=True))
+    assert plain.finished and logged.finished
+    a = json.loads((tmp_path / "plain" / "curves.json").read_text())["train"]
+    b = json.loads((tmp_path / "log" / "curves.json").read_text())["train"]
+    assert a[:2] == b[:2]  # stage 1 (PBR targets only) is untouched
+    first = a[2], b[2]  # the first neural step: same weights, same samples, so the same unweighted errors
+    assert first[0]["mse_rho"] == first[1]["mse_rho"] and first[0]["mse_lat"] == first[1]["mse_lat"]
+    assert first[1]["l_mat"] < first[0]["l_mat"] - 1e-6  # harmonic mean of two unequal MSEs < their mean
+    wa = load_file(str(tmp_path / "plain" / "lmrm.safetensors"))
+    wb = load_file(str(tmp_path / "log" / "lmrm.safetensors"))
+    assert any(not torch.equal(wa[k], wb[k]) for k in wa)
 
 
 def test_resident_objects_train_like_the_files_and_are_read_once(tiny_data, tmp_path, monkeypatch):

@@ -9,6 +9,9 @@
 - L_pbr: MSE of the PBR head (base colour, roughness, metallic) against the synthetic PBR fit.
 - L_family: cross-entropy of the family head's logits against each point's material family (models with
   `LMRMConfig.family_head`).
+
+Objects weigh alike by default (each object's L_mat is its MSE). `object_weights` instead weights each object's two
+MSEs by their inverse, which follows the metric, PSNR averaged over objects (docs/lmrm.md).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import torch.nn.functional as F
 from neumatex_core.lmrm.model import Heads
 
 LOG_VAR_RANGE = (-16.0, 8.0)  # log-variances are clamped to this range inside the NLL (numerical safety)
+MSE_FLOOR = 1e-4  # object_weights: an MSE below this (40 dB) weighs as this, so a near-perfect object cannot take over
 
 
 def beta_nll(mean: torch.Tensor, log_var: torch.Tensor, target: torch.Tensor, beta: float = 0.5) -> torch.Tensor:
@@ -38,6 +42,21 @@ def family_accuracy(logits: torch.Tensor, family: torch.Tensor) -> torch.Tensor:
     return (logits.argmax(-1) == family).float().mean()
 
 
+def material_mse(heads: Heads, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(MSE(rho_d), MSE((l + 1) / 2)), scalars, of heads at N points against targets [N, 14]: what PSNR_BaseColor and
+    PSNR_Latents measure."""
+    return ((heads.rho_d - targets[:, :3]) ** 2).mean(), (((heads.latent - targets[:, 3:9]) / 2) ** 2).mean()
+
+
+def object_weights(mse: torch.Tensor, floor: float = MSE_FLOOR) -> torch.Tensor:
+    """Weights [B, K] of B objects' MSEs [B, K] (K terms each): 1 / max(MSE, floor), normalised to mean 1 over the
+    objects, no gradient. Sum_b w_b MSE_b then has the gradient of sum_b log MSE_b up to a factor that is the same for
+    every object of the batch: training follows mean PSNR over objects (the metric), where the plain mean of the MSEs
+    follows the objects with the largest errors."""
+    inv = 1.0 / mse.detach().clamp_min(floor)
+    return inv / inv.mean(0, keepdim=True)
+
+
 @dataclass
 class LossWeights:
     """Stage weights: stage 1 (PBR pre-training) is (0, 0, 1); stage 2 (neural material) (1, lambda_unc, w_pbr,
@@ -50,14 +69,15 @@ class LossWeights:
 
 
 def lmrm_loss(heads: Heads, targets: torch.Tensor, w: LossWeights, beta: float = 0.5,
-              family: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+              family: torch.Tensor | None = None, mat_weight: tuple[float, float] = (1.0, 1.0),
+              ) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss (scalar) and its parts for heads at N points, targets [N, 14] (rho_d, l, PBR) and the points'
-    family [N] (long, index in FAMILIES; needed when the heads have family logits). Parts with weight 0 still
-    enter (times 0), so every parameter gets a (zero) gradient, as DistributedDataParallel wants."""
-    rho, lat, pbr = targets[:, :3], targets[:, 3:9], targets[:, 9:14]
-    mse_rho = ((heads.rho_d - rho) ** 2).mean()
-    mse_lat = (((heads.latent - lat) / 2) ** 2).mean()
-    l_mat = 0.5 * (mse_rho + mse_lat)
+    family [N] (long, index in FAMILIES; needed when the heads have family logits). mat_weight: this object's weights
+    of MSE(rho_d) and MSE(latent) in L_mat (`object_weights`). Parts with weight 0 still enter (times 0), so every
+    parameter gets a (zero) gradient, as DistributedDataParallel wants."""
+    pbr = targets[:, 9:14]
+    mse_rho, mse_lat = material_mse(heads, targets)
+    l_mat = 0.5 * (mat_weight[0] * mse_rho + mat_weight[1] * mse_lat)
     mean = torch.cat([heads.rho_d, heads.latent], dim=-1)
     nll = beta_nll(mean, heads.log_var, targets[:, :9], beta).mean()
     l_pbr = ((heads.pbr - pbr) ** 2).mean()

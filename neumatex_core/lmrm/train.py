@@ -36,7 +36,7 @@ from neumatex_core.config import option
 from neumatex_core.eval.metrics import psnr
 from neumatex_core.lmrm.data import Augment, LMRMDataset, Sample, make_sample, training_mean
 from neumatex_core.lmrm.inference import DATA_DIR, save_lmrm
-from neumatex_core.lmrm.losses import LossWeights, family_accuracy, lmrm_loss
+from neumatex_core.lmrm.losses import LossWeights, family_accuracy, lmrm_loss, material_mse, object_weights
 from neumatex_core.lmrm.model import LMRMConfig, LMRMNet, LMRMPreset
 from neumatex_core.lmrm.plots import line_chart
 from neumatex_core.materials.neural_basis import load_basis
@@ -64,6 +64,8 @@ class TrainLMRMConfig:
                                        "family head, e.g. --preset cpu-family)")
     init: str = option("", "start a new run from these weights (an lmrm.safetensors): tensors of the same name and "
                            "shape are copied, heads the model adds start fresh (a checkpoint in --out still resumes)")
+    log_mse: bool = option(False, "weight each object's material MSEs by their inverse (mean 1 over the batch): "
+                                  "training follows mean PSNR over objects, the metric, not the pooled MSE")
     beta: float = option(0.5, "beta of the beta-NLL")
     clip: float = option(1.0, "gradient norm clipping")
     seed: int = option(0, "seed of initialisation, data order and augmentation")
@@ -329,10 +331,14 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
             g["lr"] = _lr(cfg, step)
         w = _weights(cfg, step)
         _, heads = model([s.inputs for s in samples], [s.points for s in samples])
+        mat_weights = [(1.0, 1.0)] * len(samples)
+        if cfg.log_mse and w.mat > 0:  # the neural stage's material loss
+            mses = torch.stack([torch.stack(material_mse(h, s.targets)) for h, s in zip(heads, samples, strict=True)])
+            mat_weights = [(float(a), float(b)) for a, b in object_weights(mses)]
         total = torch.zeros((), device=device)
         parts: dict[str, float] = {}
-        for h, s in zip(heads, samples, strict=True):
-            loss, p = lmrm_loss(h, s.targets, w, cfg.beta, s.family)
+        for h, s, mw in zip(heads, samples, mat_weights, strict=True):
+            loss, p = lmrm_loss(h, s.targets, w, cfg.beta, s.family, mw)
             total = total + loss / len(samples)
             for k, v in p.items():
                 parts[k] = parts.get(k, 0.0) + v / len(samples)
