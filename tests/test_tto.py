@@ -1093,6 +1093,9 @@ def test_choose_basis_takes_the_alternative_where_the_default_cannot_hold_the_pb
     declined = choose_basis(replace(short, basis_margin_db=(other - own + gap) / 2), *args)
     assert declined is not None and not declined.switched
     assert declined.record["basis_alternative_psnr"] == pytest.approx(other, abs=1e-6)
+    # With config.appearance_start the chosen start's own record (its cells) comes along with the scores.
+    appeared = choose_basis(replace(short, basis_margin_db=-100.0, appearance_start=True), *args)
+    assert appeared is not None and appeared.switched and appeared.record["appearance_cells"] > 0
     assert choose_basis(replace(cfg, alternative_basis=""), *args) is None
     with pytest.raises(ValueError, match="alternative_basis"):
         replace(cfg, init="lmrm", reg="none", lambda_consistency=0.0).check()
@@ -1353,6 +1356,9 @@ def test_select_basis_joins_another_basis_to_the_choice_and_gives_that_basis_pla
         assert trained is not None and want is not None
         assert all(torch.equal(a, b) for a, b in zip(trained.state_dict().values(), want.state_dict().values(),
                                                      strict=True))
+    # With config.appearance_start each basis's start records its cells, the other basis's under its prefix.
+    appeared = solve(replace(cfg, appearance_start=True), *args, example.basis).selection
+    assert appeared["appearance_cells"] > 0 and appeared["select_basis_appearance_cells"] > 0
     for bad in ({"select_uniform": False}, {"init": "lmrm"}, {"basis": BASIS_V6}, {"select_basis": "nmx-basis-v9"}):
         with pytest.raises(ValueError, match="select_basis"):
             replace(cfg, **bad).check()

@@ -375,7 +375,8 @@ class BasisStart:
     """The neural phase's start that `choose_basis` chose: the planes fitted to the PBR solution in `basis`, their
     G-buffer error `mse` (`fit_start_to_pbr`), whether `basis` is config.alternative_basis (`switched`) and the
     scores that chose it (`record`, dB: basis_pbr_psnr, basis_start_psnr, basis_alternative_psnr when the
-    alternative was tried, basis_switched 0 or 1)."""
+    alternative was tried, basis_switched 0 or 1; with config.appearance_start also the chosen start's own record,
+    `FittedStart.record`)."""
 
     basis: NeuralBasis
     planes: torch.Tensor
@@ -448,10 +449,10 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
         return None
     scored = photos.subset(spread_frames(photos.count, config.validation_photos)) if scoring is None else scoring
 
-    def start_in(candidate: NeuralBasis) -> tuple[torch.Tensor, float, float]:
+    def start_in(candidate: NeuralBasis) -> tuple[torch.Tensor, float, float, dict[str, float]]:
         made = fit_start(config, first, mesh, envmap, photos, tonemap, prediction, candidate, anchor_available)
         score = photo_psnr(made.params, made.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
-        return made.params.tensor.detach().clone(), made.mse, score
+        return made.params.tensor.detach().clone(), made.mse, score, made.record
 
     pbr_psnr = photo_psnr(first.params, first.mesh or mesh, envmap, scored, tonemap, config, config.seed + 1)
     # Where two tasks run side by side (two torch threads or more on the CPU) the start in the alternative is made
@@ -459,19 +460,20 @@ def choose_basis(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Enviro
     # Cycles metals, 9 of 16 benchmark objects) that saved 12-28 s of the demo's TTO; where it is not, the start in
     # `basis` takes about 2 / 1.77 times as long as alone (two tasks on two threads: docs/design-notes.md items 44
     # and 47). Each start is the same as made alone on one thread.
-    beside: tuple[torch.Tensor, float, float] | None = None
+    beside: tuple[torch.Tensor, float, float, dict[str, float]] | None = None
     if runs_side_by_side(2, first.params.tensor.device):
-        (planes, mse, own), beside = side_by_side([partial(start_in, basis), partial(start_in, alternative)],
-                                                  first.params.tensor.device)  # fmt: skip
+        (planes, mse, own, made), beside = side_by_side([partial(start_in, basis), partial(start_in, alternative)],
+                                                        first.params.tensor.device)  # fmt: skip
     else:
-        planes, mse, own = start_in(basis)
+        planes, mse, own, made = start_in(basis)
     record = {"basis_pbr_psnr": pbr_psnr, "basis_start_psnr": own}
     chosen = BasisStart(basis, planes, mse, False, record)
     if alternative_wins(pbr_psnr, own, None, config.basis_margin_db) is None:  # the configured basis loses to PBR
-        other_planes, other_mse, other = beside if beside is not None else start_in(alternative)
+        other_planes, other_mse, other, other_made = beside if beside is not None else start_in(alternative)
         record["basis_alternative_psnr"] = other
         if alternative_wins(pbr_psnr, own, other, config.basis_margin_db):
-            chosen = BasisStart(alternative, other_planes, other_mse, True, record)
+            chosen, made = BasisStart(alternative, other_planes, other_mse, True, record), other_made
+    record.update(made)  # the chosen start's own record (config.appearance_start's; else empty)
     record["basis_switched"] = float(chosen.switched)
     return chosen
 
@@ -630,7 +632,8 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
             if isinstance(other, TTOResult):
                 return other
             taken = other.score > own.score + config.select_margin_db
-            selection.update({**scores_of(other, "select_basis_"), "select_basis_taken": float(taken)})
+            selection.update({**scores_of(other, "select_basis_"), "select_basis_taken": float(taken),
+                              **{f"select_basis_{k}": v for k, v in other_start.record.items()}})
             if taken:
                 side, chosen = other, other.kept
         runs, start = side.runs, side.start
