@@ -31,7 +31,7 @@ from neumatex_core.lmrm import LMRM, LMRMConfig, LMRMError, LMRMNet, LMRMPredict
 from neumatex_core.lmrm.data import Augment, LMRMDataset, load_synth_object
 from neumatex_core.lmrm.inference import DEFAULT_RECORD, DEFAULT_WEIGHTS
 from neumatex_core.lmrm.losses import MSE_FLOOR, beta_nll, object_weights
-from neumatex_core.lmrm.model import IN_CHANNELS, RATIO_INPUT, RATIO_MAX, lift_to_planes
+from neumatex_core.lmrm.model import IN_CHANNELS, RATIO_INPUT, RATIO_MAX, lift_by_angle, lift_to_planes
 from neumatex_core.lmrm.train import TrainLMRMConfig, train_lmrm
 from neumatex_core.materials.neural_basis import load_basis
 from neumatex_core.synth import SynthConfig, generate
@@ -133,6 +133,69 @@ def test_the_ratio_path_puts_the_lifted_shading_normalised_colour_into_the_tripl
     assert LMRMConfig.from_dict(cfg.to_dict()) == cfg and LMRMConfig.from_dict(LMRMConfig().to_dict()) == LMRMConfig()
     with pytest.raises(ValueError, match="triplane_channels > 6"):
         replace(cfg, triplane_channels=6)
+
+
+def test_lift_by_angle_means_each_texels_points_per_viewing_angle():
+    # Two points in one texel seen at n . v = 0.1 (grazing) and 0.9 (head-on), one alone in another; 3 bins.
+    pts = torch.tensor([[-0.9, -0.9, -0.9], [-0.8, -0.95, 0.5], [0.9, 0.9, 0.9]])
+    feats = torch.tensor([[1.0, 10.0], [3.0, 30.0], [5.0, 50.0]])
+    planes = lift_by_angle(feats, pts, torch.tensor([0.1, 0.9, 0.5]), 4, 3)  # [3, bins * (F + 1), R, R]
+    assert planes.shape == (3, 9, 4, 4)
+    one = torch.log1p(torch.tensor(1.0)).item() / 5
+    xy = planes[0, :, 0, 0].reshape(3, 3)  # bins x (F features, count)
+    torch.testing.assert_close(xy[0], torch.tensor([1.0, 10.0, one]))  # grazing: point 0
+    torch.testing.assert_close(xy[1], torch.tensor([2.0, 20.0, 0.0]))  # no point: the texel's mean, count 0
+    torch.testing.assert_close(xy[2], torch.tensor([3.0, 30.0, one]))  # head-on: point 1
+    torch.testing.assert_close(planes[0, :, 3, 3].reshape(3, 3)[:, :2], torch.tensor([[5.0, 50.0]] * 3))
+    assert planes[0, 8, 3, 3] == 0 and planes[0, 5, 3, 3] == pytest.approx(one)  # point 2 is in the middle bin
+    # Weighted by their counts the bins give back the texel's plain mean (`lift_to_planes`).
+    many = torch.rand(500, 3) * 2 - 1
+    f, cos = torch.rand(500, 4), torch.rand(500)
+    binned = lift_by_angle(f, many, cos, 3, 2).reshape(3, 2, 5, 3, 3)
+    counts = torch.expm1(binned[:, :, 4:] * 5)
+    torch.testing.assert_close((binned[:, :, :4] * counts).sum(1) / counts.sum(1), lift_to_planes(f, many, 3)[:, :4])
+
+
+def test_a_model_widens_into_the_angle_bins_unchanged_and_then_learns_them(tiny_data, tmp_path):
+    # `--init` from a model without angle bins: its layers that read the new channels start as before with zeros
+    # there (`widened`), so the wider model predicts exactly what the plain one did; training then moves them.
+    from safetensors.torch import save_file
+
+    from neumatex_core.lmrm.losses import LossWeights, lmrm_loss
+    from neumatex_core.lmrm.train import init_from, widened
+
+    plain_cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True)
+    wide_cfg = replace(plain_cfg, angle_bins=3)
+    assert "angle_bins" not in plain_cfg.to_dict() and LMRMConfig.from_dict(wide_cfg.to_dict()) == wide_cfg
+    torch.manual_seed(0)
+    plain = LMRMNet(plain_cfg)
+    save_file({k: v.contiguous() for k, v in plain.state_dict().items()}, str(tmp_path / "plain.safetensors"))
+    torch.manual_seed(1)
+    wide = LMRMNet(wide_cfg)
+    assert init_from(wide, tmp_path / "plain.safetensors") == len(plain.state_dict())
+    grown = [k for k, v in wide.state_dict().items() if v.shape != plain.state_dict()[k].shape]
+    assert sorted(grown) == ["plane_net.enc1.0.0.weight", "plane_net.skip.weight"]
+    n_new = 3 * (wide_cfg.feature_channels + 1)
+    for k in grown:
+        assert float(wide.state_dict()[k][:, -n_new:].abs().max()) == 0
+    ds = LMRMDataset([tiny_data], tiny_data.parent / "cache")
+    s = ds.sample(0, torch.Generator().manual_seed(0), Augment(), 256)
+    with torch.no_grad():
+        p_plain, (h_plain,) = plain([s.inputs], [s.points])
+        p_wide, (h_wide,) = wide([s.inputs], [s.points])
+    torch.testing.assert_close(p_wide, p_plain)
+    torch.testing.assert_close(h_wide.latent, h_plain.latent)
+    # The new channels carry signal and get a gradient: one Adam step makes them non-zero.
+    opt = torch.optim.Adam(wide.parameters(), lr=1e-3)
+    _, (heads,) = wide([s.inputs], [s.points])
+    lmrm_loss(heads, s.targets, LossWeights(mat=1.0, unc=0.0, pbr=0.0))[0].backward()
+    opt.step()
+    assert float(wide.state_dict()["plane_net.skip.weight"][:, -n_new:].abs().max()) > 0
+    # Only a gain in input channels widens: fewer channels or another output size are not copied.
+    assert widened(torch.ones(4, 3), torch.zeros(5, 6)) is None
+    assert widened(torch.ones(4, 6), torch.zeros(4, 3)) is None
+    torch.testing.assert_close(widened(torch.ones(4, 3), torch.zeros(4, 5)), torch.cat([torch.ones(4, 3),
+                                                                                        torch.zeros(4, 2)], 1))
 
 
 def test_pbr_gbuffer_channels_are_read_by_name(tmp_path):

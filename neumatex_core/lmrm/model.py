@@ -10,7 +10,10 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
 2. A small per-view CNN (`ViewEncoder`, 3x3 convolutions) maps them to per-pixel features [V, F, H, W].
 3. Lifting: covered pixels carry their surface point (position G-buffer); each plane k of the triplane (XY, YZ,
    XZ) gets the scatter-mean of the features of the points falling into each of its R x R texels, their mean
-   square (view-dependent effects, e.g. highlights, raise it) and log(1 + count) (`lift_to_planes`).
+   square (view-dependent effects, e.g. highlights, raise it) and log(1 + count) (`lift_to_planes`). With
+   `LMRMConfig.angle_bins` also the mean per texel within each bin of the viewing angle's cosine n . v
+   (`lift_by_angle`): how a point looks head-on against at grazing angles, which a sheen, dust or a coat's Fresnel
+   change and a plain diffuse base does not.
 4. A shared U-Net (`PlaneNet`, with a one-hot plane-id input and the mean feature of all the object's points as
    global context at every texel) turns the three lifted planes into the triplane [3, C, R, R]. With
    `LMRMConfig.ratio_path` its first `RATIO_PATH_CHANNELS` channels are instead the lifted per-texel mean and mean
@@ -41,10 +44,11 @@ from neumatex_core.fields.triplane import PLANE_AXES, Triplane
 from neumatex_core.lighting.prefilter import KAPPAS
 
 N_CUES = 3 * (1 + len(KAPPAS))  # diffuse RGB + glossy RGB per lobe width
+NORMAL_INPUT, TO_CAMERA_INPUT = slice(4, 7), slice(7, 10)  # view_inputs' world normal and direction to the camera
 RATIO_INPUT = slice(3 + 1 + 3 + 3 + N_CUES, 3 + 1 + 3 + 3 + N_CUES + 3)  # the ratio's channels in view_inputs
 IN_CHANNELS = RATIO_INPUT.stop + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
 RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
-LMRMPreset = Literal["cpu", "cpu-ratio", "cpu-family", "gpu", "test"]  # LMRMConfig.preset's names
+LMRMPreset = Literal["cpu", "cpu-ratio", "cpu-family", "cpu-angle", "gpu", "test"]  # LMRMConfig.preset's names
 LMRM_PRESETS: tuple[str, ...] = get_args(LMRMPreset)
 RATIO_PATH_CHANNELS = 6  # LMRMConfig.ratio_path: the lifted ratio's mean and mean square (RGB each)
 
@@ -68,6 +72,9 @@ class LMRMConfig:
     # a fourth decoder classifies each point's material family (FAMILIES), trained with cross-entropy: the latents'
     # error is mostly which family a region is; the head did not reduce it (docs/lmrm.md)
     family_head: bool = False
+    # > 0: the per-view features are also lifted per bin of n . v (`lift_by_angle`, module docstring step 3), this
+    # many bins of equal width in the cosine over [0, 1]
+    angle_bins: int = 0
 
     def __post_init__(self) -> None:
         if self.ratio_path and self.triplane_channels <= RATIO_PATH_CHANNELS:
@@ -77,7 +84,8 @@ class LMRMConfig:
     @classmethod
     def preset(cls, name: str) -> LMRMConfig:
         """The named config (`LMRM_PRESET_FIELDS`): 'cpu' (the defaults), 'cpu-ratio' (the same with the fixed colour
-        path, `ratio_path`), 'cpu-family' (cpu-ratio with the family head, `family_head`), 'gpu' (about 30x the
+        path, `ratio_path`), 'cpu-family' (cpu-ratio with the family head, `family_head`), 'cpu-angle' (cpu-ratio
+        with the features also lifted per viewing angle, `angle_bins`), 'gpu' (about 30x the
         compute: larger views, planes and widths) or 'test' (a few thousand parameters, for unit tests)."""
         if name not in LMRM_PRESET_FIELDS:
             raise ValueError(f"unknown LMRM preset {name!r} (expected one of {', '.join(LMRM_PRESETS)})")
@@ -89,10 +97,10 @@ class LMRMConfig:
         return cls(**data)
 
     def to_dict(self) -> dict[str, Any]:
-        """The fields; `ratio_path` and `family_head` only when on, so the records of models made before them stay as
-        they are."""
+        """The fields; `ratio_path`, `family_head` and `angle_bins` only when on, so the records of models made before
+        them stay as they are."""
         out = asdict(self)
-        for flag in ("ratio_path", "family_head"):
+        for flag in ("ratio_path", "family_head", "angle_bins"):
             if not out[flag]:
                 del out[flag]
         return out
@@ -103,6 +111,7 @@ LMRM_PRESET_FIELDS: dict[str, dict[str, Any]] = {
     "cpu": {},
     "cpu-ratio": {"ratio_path": True},
     "cpu-family": {"ratio_path": True, "family_head": True},
+    "cpu-angle": {"ratio_path": True, "angle_bins": 3},
     "gpu": {"view_resolution": 128, "view_channels": 64, "view_layers": 3, "feature_channels": 32,
             "plane_resolution": 96, "plane_channels": 64, "triplane_channels": 32, "decoder_hidden": 128},
     "test": {"view_resolution": 24, "view_channels": 8, "view_layers": 1, "feature_channels": 4, "plane_resolution": 8,
@@ -187,14 +196,41 @@ def lift_to_planes(features: torch.Tensor, points: torch.Tensor, resolution: int
     return torch.stack(planes).reshape(3, resolution, resolution, 2 * n_feat + 1).permute(0, 3, 1, 2)
 
 
+def lift_by_angle(features: torch.Tensor, points: torch.Tensor, cos_view: torch.Tensor, resolution: int,
+                  bins: int) -> torch.Tensor:
+    """Scatter point features [N, F] at world points [N, 3] into three planes per bin of cos_view [N] (n . v of the
+    pixel each point came from; `bins` bins of equal width over [0, 1]): [3, bins * (F + 1), R, R], per bin the
+    texel's mean feature over the points in that bin (over all its points where the bin has none, so an empty bin
+    reads as no change with angle) and log(1 + the bin's count)/5."""
+    n_feat = features.shape[1]
+    idx = texel_index(points, resolution)  # [3, N]
+    which = (cos_view.clamp(0, 1) * bins).long().clamp_max(bins - 1)  # [N]
+    ones = torch.ones_like(features[:, :1])
+    planes = []
+    for k in range(3):
+        both = torch.cat([features, ones], dim=1)
+        total = torch.zeros(resolution * resolution, n_feat + 1, dtype=features.dtype, device=features.device)
+        total = total.index_add(0, idx[k], both)
+        overall = total[:, :-1] / total[:, -1:].clamp_min(1)
+        # one scatter for all bins: texel t of bin j is row j * R^2 + t
+        acc = torch.zeros(bins * resolution * resolution, n_feat + 1, dtype=features.dtype, device=features.device)
+        acc = acc.index_add(0, which * resolution * resolution + idx[k], both).reshape(bins, -1, n_feat + 1)
+        count = acc[..., -1:]
+        mean = torch.where(count > 0, acc[..., :-1] / count.clamp_min(1), overall)
+        per_texel = torch.cat([mean, torch.log1p(count) / 5], dim=-1).permute(1, 0, 2)  # [R^2, bins, F + 1]
+        planes.append(per_texel.reshape(-1, bins * (n_feat + 1)))
+    return torch.stack(planes).reshape(3, resolution, resolution, -1).permute(0, 3, 1, 2)
+
+
 class PlaneNet(nn.Module):
-    """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3, R, R] (lifted mean, mean square, count, the
-    object's global feature mean, plane id) -> [B*3, C_out, R, R] (two levels down; C_out = C, or C - 6 with the
-    ratio path)."""
+    """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3 (+ bins * (F + 1)), R, R] (lifted mean, mean
+    square, count, the object's global feature mean, plane id; with `angle_bins` then `lift_by_angle`'s channels, last
+    so that a model without them widens into one with them, `train.init_from`) -> [B*3, C_out, R, R] (two levels
+    down; C_out = C, or C - 6 with the ratio path)."""
 
     def __init__(self, cfg: LMRMConfig) -> None:
         super().__init__()
-        c_in = 3 * cfg.feature_channels + 1 + 3
+        c_in = 3 * cfg.feature_channels + 1 + 3 + cfg.angle_bins * (cfg.feature_channels + 1)
         c1, c2 = cfg.plane_channels, 2 * cfg.plane_channels
         self.enc1 = nn.Sequential(_conv(c_in, c1), _conv(c1, c1))
         self.enc2 = nn.Sequential(_conv(c1, c2), _conv(c2, c2))
@@ -259,7 +295,7 @@ class LMRMNet(nn.Module):
     def planes(self, objects: list[ObjectInputs]) -> torch.Tensor:
         """Triplane planes [B, 3, C, R, R] of B objects."""
         r = self.cfg.plane_resolution
-        lifted, ratios = [], []
+        lifted, ratios, by_angle = [], [], []
         for obj in objects:
             feats = self.view_encoder(obj.inputs)  # [V, F, H, W]
             m = obj.mask
@@ -268,13 +304,16 @@ class LMRMNet(nn.Module):
             planes = lift_to_planes(per_pixel, pts, r)
             context = per_pixel.mean(0)[None, :, None, None].expand(3, -1, r, r)  # object-level colour, gloss
             lifted.append(torch.cat([planes, context], dim=1))
+            if self.cfg.angle_bins:
+                cos_view = (obj.inputs[:, NORMAL_INPUT] * obj.inputs[:, TO_CAMERA_INPUT]).sum(1)[m]  # [P]
+                by_angle.append(lift_by_angle(per_pixel, pts, cos_view, r, self.cfg.angle_bins))
             if self.cfg.ratio_path:  # the ratio input back in [0, RATIO_MAX], lifted: mean, mean square
                 ratio = obj.inputs[:, RATIO_INPUT].permute(0, 2, 3, 1)[m] * RATIO_MAX
                 ratios.append(lift_to_planes(ratio, pts, r)[:, :RATIO_PATH_CHANNELS])
         x = torch.stack(lifted)  # [B, 3, 3F+1, R, R]
         b = x.shape[0]
         plane_id = torch.eye(3, dtype=x.dtype, device=x.device)[None, :, :, None, None].expand(b, 3, 3, r, r)
-        x = torch.cat([x, plane_id], dim=2).reshape(b * 3, -1, r, r)
+        x = torch.cat([x, plane_id, *([torch.stack(by_angle)] if by_angle else [])], dim=2).reshape(b * 3, -1, r, r)
         out = self.plane_net(x).reshape(b, 3, -1, r, r)
         if ratios:
             out = torch.cat([torch.stack(ratios), out], dim=2)

@@ -174,9 +174,22 @@ class _Order:
         return picked
 
 
+def widened(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor | None:
+    """`source` as a tensor of `target`'s shape when the two differ only by `target` having more input channels
+    (dim 1, e.g. a convolution's weight [out, in, k, k] given `angle_bins`' channels): its leading channels copied,
+    the new ones zero, so the widened layer computes what `source` did until training moves it; else None."""
+    if (source.dim() < 2 or source.dim() != target.dim() or source.shape[1] >= target.shape[1]
+            or source.shape[:1] + source.shape[2:] != target.shape[:1] + target.shape[2:]):  # fmt: skip
+        return None
+    out = torch.zeros_like(target)
+    out[:, : source.shape[1]] = source.to(target.dtype)
+    return out
+
+
 def init_from(net: LMRMNet, weights: Path) -> int:
     """Copy into `net` the tensors of the LMRM weights file whose name and shape match (another preset's model: a
-    head it lacks keeps its fresh initialisation); returns how many were copied. Raises ValueError naming the file
+    head it lacks keeps its fresh initialisation), and those that `widened` fits (a layer reading new input channels
+    starts as the old one, zero on the new channels); returns how many were copied. Raises ValueError naming the file
     when it cannot be read or shares no tensor with `net`."""
     from safetensors.torch import load_file
 
@@ -186,6 +199,9 @@ def init_from(net: LMRMNet, weights: Path) -> int:
         raise ValueError(f"{weights}: cannot read LMRM weights to start from ({exc})") from None
     state = net.state_dict()
     matching = {k: v for k, v in source.items() if k in state and state[k].shape == v.shape}
+    for k, v in source.items():
+        if k in state and k not in matching and (grown := widened(v, state[k])) is not None:
+            matching[k] = grown
     if not matching:
         raise ValueError(f"{weights}: no tensor matches this model's names and shapes (another model size?)")
     net.load_state_dict(matching, strict=False)  # copies into the existing tensors (their device and dtype)
