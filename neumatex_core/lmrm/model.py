@@ -205,10 +205,9 @@ def lift_by_angle(features: torch.Tensor, points: torch.Tensor, cos_view: torch.
     n_feat = features.shape[1]
     idx = texel_index(points, resolution)  # [3, N]
     which = (cos_view.clamp(0, 1) * bins).long().clamp_max(bins - 1)  # [N]
-    ones = torch.ones_like(features[:, :1])
+    both = torch.cat([features, torch.ones_like(features[:, :1])], dim=1)  # features and a count
     planes = []
     for k in range(3):
-        both = torch.cat([features, ones], dim=1)
         total = torch.zeros(resolution * resolution, n_feat + 1, dtype=features.dtype, device=features.device)
         total = total.index_add(0, idx[k], both)
         overall = total[:, :-1] / total[:, -1:].clamp_min(1)
