@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -196,6 +197,36 @@ def test_a_model_widens_into_the_angle_bins_unchanged_and_then_learns_them(tiny_
     assert widened(torch.ones(4, 6), torch.zeros(4, 3)) is None
     torch.testing.assert_close(widened(torch.ones(4, 3), torch.zeros(4, 5)), torch.cat([torch.ones(4, 3),
                                                                                         torch.zeros(4, 2)], 1))
+
+
+def test_gloss_bins_sort_pixels_by_the_reflected_lights_brightness_and_widen_a_model_with_angle_bins(tiny_data,
+                                                                                                        tmp_path):
+    # `gloss_bin`: log(sharpest glossy cue / diffuse cue) against GLOSS_EDGES, read from view_inputs' squashed cues.
+    from safetensors.torch import save_file
+
+    from neumatex_core.lmrm.model import CUE_INPUT, GLOSS_EDGES, gloss_bin
+    from neumatex_core.lmrm.train import init_from
+
+    raw = torch.ones(3, CUE_INPUT.stop - CUE_INPUT.start)
+    raw[:, 3:6] = torch.tensor([[0.2], [0.6], [1.2]])  # the sharp reflection at 0.2, 0.6, 1.2 times the diffuse light
+    assert math.log(0.2) < GLOSS_EDGES[0] < math.log(0.6) < GLOSS_EDGES[1] < math.log(1.2)
+    assert gloss_bin(raw / (1 + raw)).tolist() == [0, 1, 2]
+    # A model with angle bins widens into one with gloss bins too, unchanged until trained.
+    angle_cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True, angle_bins=2)
+    both_cfg = replace(angle_cfg, gloss_bins=True)
+    assert "gloss_bins" not in angle_cfg.to_dict() and LMRMConfig.from_dict(both_cfg.to_dict()) == both_cfg
+    torch.manual_seed(0)
+    angle = LMRMNet(angle_cfg)
+    save_file({k: v.contiguous() for k, v in angle.state_dict().items()}, str(tmp_path / "angle.safetensors"))
+    both = LMRMNet(both_cfg)
+    assert init_from(both, tmp_path / "angle.safetensors") == len(angle.state_dict())
+    weight = both.state_dict()["plane_net.skip.weight"]
+    assert weight.shape[1] - angle.state_dict()["plane_net.skip.weight"].shape[1] == 3 * (both_cfg.feature_channels + 1)
+    ds = LMRMDataset([tiny_data], tiny_data.parent / "cache")
+    samples = [ds.sample(i, torch.Generator().manual_seed(i), Augment.none(), 128) for i in range(2)]
+    with torch.no_grad():
+        torch.testing.assert_close(both([s.inputs for s in samples], [s.points for s in samples])[0],
+                                   angle([s.inputs for s in samples], [s.points for s in samples])[0])
 
 
 def test_pbr_gbuffer_channels_are_read_by_name(tmp_path):

@@ -13,7 +13,9 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
    square (view-dependent effects, e.g. highlights, raise it) and log(1 + count) (`lift_to_planes`). With
    `LMRMConfig.angle_bins` also the mean per texel within each bin of the viewing angle's cosine n . v
    (`lift_by_angle`): how a point looks head-on against at grazing angles, which a sheen, dust or a coat's Fresnel
-   change and a plain diffuse base does not.
+   change and a plain diffuse base does not. With `LMRMConfig.gloss_bins` also per bin of how bright the sharp
+   reflection of the lighting is against the diffuse light at the pixel (`gloss_bin`): a coat or a metal follows the
+   reflected light, a diffuse base does not.
 4. A shared U-Net (`PlaneNet`, with a one-hot plane-id input and the mean feature of all the object's points as
    global context at every texel) turns the three lifted planes into the triplane [3, C, R, R]. With
    `LMRMConfig.ratio_path` its first `RATIO_PATH_CHANNELS` channels are instead the lifted per-texel mean and mean
@@ -45,10 +47,14 @@ from neumatex_core.lighting.prefilter import KAPPAS
 
 N_CUES = 3 * (1 + len(KAPPAS))  # diffuse RGB + glossy RGB per lobe width
 NORMAL_INPUT, TO_CAMERA_INPUT = slice(4, 7), slice(7, 10)  # view_inputs' world normal and direction to the camera
+CUE_INPUT = slice(10, 10 + 3 * (1 + len(KAPPAS)))  # view_inputs' squashed lighting cues: diffuse, then glossy by KAPPAS
+# gloss_bin's edges on log(sharpest glossy cue / diffuse cue), mean over RGB: the terciles over 100 training objects
+GLOSS_EDGES = (-1.45, -0.36)
 RATIO_INPUT = slice(3 + 1 + 3 + 3 + N_CUES, 3 + 1 + 3 + 3 + N_CUES + 3)  # the ratio's channels in view_inputs
 IN_CHANNELS = RATIO_INPUT.stop + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
 RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
-LMRMPreset = Literal["cpu", "cpu-ratio", "cpu-family", "cpu-angle", "gpu", "test"]  # LMRMConfig.preset's names
+# LMRMConfig.preset's names
+LMRMPreset = Literal["cpu", "cpu-ratio", "cpu-family", "cpu-angle", "cpu-angle-gloss", "gpu", "test"]
 LMRM_PRESETS: tuple[str, ...] = get_args(LMRMPreset)
 RATIO_PATH_CHANNELS = 6  # LMRMConfig.ratio_path: the lifted ratio's mean and mean square (RGB each)
 
@@ -75,6 +81,8 @@ class LMRMConfig:
     # > 0: the per-view features are also lifted per bin of n . v (`lift_by_angle`, module docstring step 3), this
     # many bins of equal width in the cosine over [0, 1]
     angle_bins: int = 0
+    # the per-view features also lifted per bin of `gloss_bin` (len(GLOSS_EDGES) + 1 bins; module docstring step 3)
+    gloss_bins: bool = False
 
     def __post_init__(self) -> None:
         if self.ratio_path and self.triplane_channels <= RATIO_PATH_CHANNELS:
@@ -85,7 +93,8 @@ class LMRMConfig:
     def preset(cls, name: str) -> LMRMConfig:
         """The named config (`LMRM_PRESET_FIELDS`): 'cpu' (the defaults), 'cpu-ratio' (the same with the fixed colour
         path, `ratio_path`), 'cpu-family' (cpu-ratio with the family head, `family_head`), 'cpu-angle' (cpu-ratio
-        with the features also lifted per viewing angle, `angle_bins`), 'gpu' (about 30x the
+        with the features also lifted per viewing angle, `angle_bins`), 'cpu-angle-gloss' (cpu-angle with the
+        features also lifted per brightness of the reflected light, `gloss_bins`), 'gpu' (about 30x the
         compute: larger views, planes and widths) or 'test' (a few thousand parameters, for unit tests)."""
         if name not in LMRM_PRESET_FIELDS:
             raise ValueError(f"unknown LMRM preset {name!r} (expected one of {', '.join(LMRM_PRESETS)})")
@@ -97,10 +106,10 @@ class LMRMConfig:
         return cls(**data)
 
     def to_dict(self) -> dict[str, Any]:
-        """The fields; `ratio_path`, `family_head` and `angle_bins` only when on, so the records of models made before
-        them stay as they are."""
+        """The fields; `ratio_path`, `family_head`, `angle_bins` and `gloss_bins` only when on, so the records of models
+        made before them stay as they are."""
         out = asdict(self)
-        for flag in ("ratio_path", "family_head", "angle_bins"):
+        for flag in ("ratio_path", "family_head", "angle_bins", "gloss_bins"):
             if not out[flag]:
                 del out[flag]
         return out
@@ -112,6 +121,7 @@ LMRM_PRESET_FIELDS: dict[str, dict[str, Any]] = {
     "cpu-ratio": {"ratio_path": True},
     "cpu-family": {"ratio_path": True, "family_head": True},
     "cpu-angle": {"ratio_path": True, "angle_bins": 3},
+    "cpu-angle-gloss": {"ratio_path": True, "angle_bins": 3, "gloss_bins": True},
     "gpu": {"view_resolution": 128, "view_channels": 64, "view_layers": 3, "feature_channels": 32,
             "plane_resolution": 96, "plane_channels": 64, "triplane_channels": 32, "decoder_hidden": 128},
     "test": {"view_resolution": 24, "view_channels": 8, "view_layers": 1, "feature_channels": 4, "plane_resolution": 8,
@@ -198,13 +208,27 @@ def lift_to_planes(features: torch.Tensor, points: torch.Tensor, resolution: int
 
 def lift_by_angle(features: torch.Tensor, points: torch.Tensor, cos_view: torch.Tensor, resolution: int,
                   bins: int) -> torch.Tensor:
-    """Scatter point features [N, F] at world points [N, 3] into three planes per bin of cos_view [N] (n . v of the
-    pixel each point came from; `bins` bins of equal width over [0, 1]): [3, bins * (F + 1), R, R], per bin the
-    texel's mean feature over the points in that bin (over all its points where the bin has none, so an empty bin
-    reads as no change with angle) and log(1 + the bin's count)/5."""
+    """`lift_binned` by cos_view [N] (n . v of the pixel each point came from; `bins` bins of equal width over
+    [0, 1])."""
+    which = (cos_view.clamp(0, 1) * bins).long().clamp_max(bins - 1)
+    return lift_binned(features, points, which, resolution, bins)
+
+
+def gloss_bin(cues: torch.Tensor) -> torch.Tensor:
+    """[...] bin index in 0..len(GLOSS_EDGES) of squashed lighting cues [..., N_CUES] (`view_inputs`' c / (1 + c)):
+    log(sharpest glossy cue / diffuse cue), each the mean over RGB, against GLOSS_EDGES."""
+    raw = cues / (1 - cues).clamp_min(1e-6)
+    ratio = raw[..., 3:6].mean(-1).clamp_min(1e-4) / raw[..., :3].mean(-1).clamp_min(1e-4)
+    return torch.bucketize(torch.log(ratio), torch.tensor(GLOSS_EDGES, dtype=cues.dtype, device=cues.device))
+
+
+def lift_binned(features: torch.Tensor, points: torch.Tensor, which: torch.Tensor, resolution: int,
+                bins: int) -> torch.Tensor:
+    """Scatter point features [N, F] at world points [N, 3] into three planes per bin `which` [N] (long, 0..bins-1):
+    [3, bins * (F + 1), R, R], per bin the texel's mean feature over the points in that bin (over all its points
+    where the bin has none, so an empty bin reads as no change) and log(1 + the bin's count)/5."""
     n_feat = features.shape[1]
     idx = texel_index(points, resolution)  # [3, N]
-    which = (cos_view.clamp(0, 1) * bins).long().clamp_max(bins - 1)  # [N]
     both = torch.cat([features, torch.ones_like(features[:, :1])], dim=1)  # features and a count
     planes = []
     for k in range(3):
@@ -223,13 +247,15 @@ def lift_by_angle(features: torch.Tensor, points: torch.Tensor, cos_view: torch.
 
 class PlaneNet(nn.Module):
     """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3 (+ bins * (F + 1)), R, R] (lifted mean, mean
-    square, count, the object's global feature mean, plane id; with `angle_bins` then `lift_by_angle`'s channels, last
-    so that a model without them widens into one with them, `train.init_from`) -> [B*3, C_out, R, R] (two levels
+    square, count, the object's global feature mean, plane id; with `angle_bins` then `lift_by_angle`'s channels and
+    with `gloss_bins` then the gloss bins', last so that a model without them widens into one with them,
+    `train.init_from`) -> [B*3, C_out, R, R] (two levels
     down; C_out = C, or C - 6 with the ratio path)."""
 
     def __init__(self, cfg: LMRMConfig) -> None:
         super().__init__()
-        c_in = 3 * cfg.feature_channels + 1 + 3 + cfg.angle_bins * (cfg.feature_channels + 1)
+        n_bins = cfg.angle_bins + (len(GLOSS_EDGES) + 1 if cfg.gloss_bins else 0)
+        c_in = 3 * cfg.feature_channels + 1 + 3 + n_bins * (cfg.feature_channels + 1)
         c1, c2 = cfg.plane_channels, 2 * cfg.plane_channels
         self.enc1 = nn.Sequential(_conv(c_in, c1), _conv(c1, c1))
         self.enc2 = nn.Sequential(_conv(c1, c2), _conv(c2, c2))
@@ -294,7 +320,7 @@ class LMRMNet(nn.Module):
     def planes(self, objects: list[ObjectInputs]) -> torch.Tensor:
         """Triplane planes [B, 3, C, R, R] of B objects."""
         r = self.cfg.plane_resolution
-        lifted, ratios, by_angle = [], [], []
+        lifted, ratios, lifts = [], [], []  # lifts: each object's binned lifts
         for obj in objects:
             feats = self.view_encoder(obj.inputs)  # [V, F, H, W]
             m = obj.mask
@@ -305,14 +331,19 @@ class LMRMNet(nn.Module):
             lifted.append(torch.cat([planes, context], dim=1))
             if self.cfg.angle_bins:
                 cos_view = (obj.inputs[:, NORMAL_INPUT] * obj.inputs[:, TO_CAMERA_INPUT]).sum(1)[m]  # [P]
-                by_angle.append(lift_by_angle(per_pixel, pts, cos_view, r, self.cfg.angle_bins))
+                lifts.append(lift_by_angle(per_pixel, pts, cos_view, r, self.cfg.angle_bins))
+            if self.cfg.gloss_bins:
+                which = gloss_bin(obj.inputs[:, CUE_INPUT].permute(0, 2, 3, 1)[m])  # [P]
+                lifts.append(lift_binned(per_pixel, pts, which, r, len(GLOSS_EDGES) + 1))
             if self.cfg.ratio_path:  # the ratio input back in [0, RATIO_MAX], lifted: mean, mean square
                 ratio = obj.inputs[:, RATIO_INPUT].permute(0, 2, 3, 1)[m] * RATIO_MAX
                 ratios.append(lift_to_planes(ratio, pts, r)[:, :RATIO_PATH_CHANNELS])
         x = torch.stack(lifted)  # [B, 3, 3F+1, R, R]
         b = x.shape[0]
         plane_id = torch.eye(3, dtype=x.dtype, device=x.device)[None, :, :, None, None].expand(b, 3, 3, r, r)
-        x = torch.cat([x, plane_id, *([torch.stack(by_angle)] if by_angle else [])], dim=2).reshape(b * 3, -1, r, r)
+        n_binned = len(lifts) // b  # per object: the angle bins', then the gloss bins'
+        binned = [torch.cat(lifts[i * n_binned:(i + 1) * n_binned], dim=1) for i in range(b)] if lifts else []
+        x = torch.cat([x, plane_id, *([torch.stack(binned)] if binned else [])], dim=2).reshape(b * 3, -1, r, r)
         out = self.plane_net(x).reshape(b, 3, -1, r, r)
         if ratios:
             out = torch.cat([torch.stack(ratios), out], dim=2)
