@@ -47,10 +47,10 @@ from neumatex_core.lighting.prefilter import KAPPAS
 
 N_CUES = 3 * (1 + len(KAPPAS))  # diffuse RGB + glossy RGB per lobe width
 NORMAL_INPUT, TO_CAMERA_INPUT = slice(4, 7), slice(7, 10)  # view_inputs' world normal and direction to the camera
-CUE_INPUT = slice(10, 10 + 3 * (1 + len(KAPPAS)))  # view_inputs' squashed lighting cues: diffuse, then glossy by KAPPAS
+CUE_INPUT = slice(TO_CAMERA_INPUT.stop, TO_CAMERA_INPUT.stop + N_CUES)  # squashed cues: diffuse, then glossy by KAPPAS
 # gloss_bin's edges on log(sharpest glossy cue / diffuse cue), mean over RGB: the terciles over 100 training objects
 GLOSS_EDGES = (-1.45, -0.36)
-RATIO_INPUT = slice(3 + 1 + 3 + 3 + N_CUES, 3 + 1 + 3 + 3 + N_CUES + 3)  # the ratio's channels in view_inputs
+RATIO_INPUT = slice(CUE_INPUT.stop, CUE_INPUT.stop + 3)  # the ratio's channels in view_inputs
 IN_CHANNELS = RATIO_INPUT.stop + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
 RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
 # LMRMConfig.preset's names
@@ -232,12 +232,11 @@ def lift_binned(features: torch.Tensor, points: torch.Tensor, which: torch.Tenso
     both = torch.cat([features, torch.ones_like(features[:, :1])], dim=1)  # features and a count
     planes = []
     for k in range(3):
-        total = torch.zeros(resolution * resolution, n_feat + 1, dtype=features.dtype, device=features.device)
-        total = total.index_add(0, idx[k], both)
-        overall = total[:, :-1] / total[:, -1:].clamp_min(1)
         # one scatter for all bins: texel t of bin j is row j * R^2 + t
         acc = torch.zeros(bins * resolution * resolution, n_feat + 1, dtype=features.dtype, device=features.device)
         acc = acc.index_add(0, which * resolution * resolution + idx[k], both).reshape(bins, -1, n_feat + 1)
+        total = acc.sum(0)  # the texel's sums over all its points
+        overall = total[:, :-1] / total[:, -1:].clamp_min(1)
         count = acc[..., -1:]
         mean = torch.where(count > 0, acc[..., :-1] / count.clamp_min(1), overall)
         per_texel = torch.cat([mean, torch.log1p(count) / 5], dim=-1).permute(1, 0, 2)  # [R^2, bins, F + 1]
@@ -249,8 +248,7 @@ class PlaneNet(nn.Module):
     """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3 (+ bins * (F + 1)), R, R] (lifted mean, mean
     square, count, the object's global feature mean, plane id; with `angle_bins` then `lift_by_angle`'s channels and
     with `gloss_bins` then the gloss bins', last so that a model without them widens into one with them,
-    `train.init_from`) -> [B*3, C_out, R, R] (two levels
-    down; C_out = C, or C - 6 with the ratio path)."""
+    `train.init_from`) -> [B*3, C_out, R, R] (two levels down; C_out = C, or C - 6 with the ratio path)."""
 
     def __init__(self, cfg: LMRMConfig) -> None:
         super().__init__()
@@ -320,7 +318,7 @@ class LMRMNet(nn.Module):
     def planes(self, objects: list[ObjectInputs]) -> torch.Tensor:
         """Triplane planes [B, 3, C, R, R] of B objects."""
         r = self.cfg.plane_resolution
-        lifted, ratios, lifts = [], [], []  # lifts: each object's binned lifts
+        lifted, ratios, binned = [], [], []
         for obj in objects:
             feats = self.view_encoder(obj.inputs)  # [V, F, H, W]
             m = obj.mask
@@ -329,20 +327,21 @@ class LMRMNet(nn.Module):
             planes = lift_to_planes(per_pixel, pts, r)
             context = per_pixel.mean(0)[None, :, None, None].expand(3, -1, r, r)  # object-level colour, gloss
             lifted.append(torch.cat([planes, context], dim=1))
+            bins = []  # the angle bins', then the gloss bins'
             if self.cfg.angle_bins:
                 cos_view = (obj.inputs[:, NORMAL_INPUT] * obj.inputs[:, TO_CAMERA_INPUT]).sum(1)[m]  # [P]
-                lifts.append(lift_by_angle(per_pixel, pts, cos_view, r, self.cfg.angle_bins))
+                bins.append(lift_by_angle(per_pixel, pts, cos_view, r, self.cfg.angle_bins))
             if self.cfg.gloss_bins:
                 which = gloss_bin(obj.inputs[:, CUE_INPUT].permute(0, 2, 3, 1)[m])  # [P]
-                lifts.append(lift_binned(per_pixel, pts, which, r, len(GLOSS_EDGES) + 1))
+                bins.append(lift_binned(per_pixel, pts, which, r, len(GLOSS_EDGES) + 1))
+            if bins:
+                binned.append(torch.cat(bins, dim=1))
             if self.cfg.ratio_path:  # the ratio input back in [0, RATIO_MAX], lifted: mean, mean square
                 ratio = obj.inputs[:, RATIO_INPUT].permute(0, 2, 3, 1)[m] * RATIO_MAX
                 ratios.append(lift_to_planes(ratio, pts, r)[:, :RATIO_PATH_CHANNELS])
         x = torch.stack(lifted)  # [B, 3, 3F+1, R, R]
         b = x.shape[0]
         plane_id = torch.eye(3, dtype=x.dtype, device=x.device)[None, :, :, None, None].expand(b, 3, 3, r, r)
-        n_binned = len(lifts) // b  # per object: the angle bins', then the gloss bins'
-        binned = [torch.cat(lifts[i * n_binned:(i + 1) * n_binned], dim=1) for i in range(b)] if lifts else []
         x = torch.cat([x, plane_id, *([torch.stack(binned)] if binned else [])], dim=2).reshape(b * 3, -1, r, r)
         out = self.plane_net(x).reshape(b, 3, -1, r, r)
         if ratios:
