@@ -229,6 +229,51 @@ def test_gloss_bins_sort_pixels_by_the_reflected_lights_brightness_and_widen_a_m
                                    angle([s.inputs for s in samples], [s.points for s in samples])[0])
 
 
+def test_ratio_bins_put_the_colours_own_binned_lift_last_in_the_triplane_and_widen_a_model_unchanged(tiny_data,
+                                                                                                        tmp_path):
+    # `ratio_bins`: the triplane's last channels are the shading-normalised colour lifted per angle bin (each bin's
+    # mean RGB and log count), not learnt; a model without them widens into one with them (the decoders per plane).
+    from safetensors.torch import save_file
+
+    from neumatex_core.lmrm.model import RATIO_BIN_CHANNELS, RATIO_PATH_CHANNELS, angle_bin, lift_binned
+    from neumatex_core.lmrm.train import init_from, widened
+
+    angle_cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True, angle_bins=2)
+    ratio_cfg = replace(angle_cfg, ratio_bins=True, triplane_channels=8 + 2 * RATIO_BIN_CHANNELS)
+    assert "ratio_bins" not in angle_cfg.to_dict() and LMRMConfig.from_dict(ratio_cfg.to_dict()) == ratio_cfg
+    with pytest.raises(ValueError, match="ratio_bins"):
+        replace(angle_cfg, ratio_bins=True, angle_bins=0)
+    with pytest.raises(ValueError, match="triplane_channels"):
+        replace(angle_cfg, ratio_bins=True)  # 8 channels cannot hold 6 + 2 x 4 fixed ones
+    torch.manual_seed(0)
+    angle = LMRMNet(angle_cfg)
+    save_file({k: v.contiguous() for k, v in angle.state_dict().items()}, str(tmp_path / "angle.safetensors"))
+    torch.manual_seed(1)
+    both = LMRMNet(ratio_cfg)
+    assert init_from(both, tmp_path / "angle.safetensors") == len(angle.state_dict())
+    grown = sorted(k for k, v in both.state_dict().items() if v.shape != angle.state_dict()[k].shape)
+    assert grown == ["material_decoder.net.0.weight", "pbr_decoder.net.0.weight", "uncertainty_decoder.net.0.weight"]
+    ds = LMRMDataset([tiny_data], tiny_data.parent / "cache")
+    s = ds.sample(0, torch.Generator().manual_seed(0), Augment.none(), 128)
+    with torch.no_grad():
+        p_angle, (h_angle,) = angle([s.inputs], [s.points])
+        p_both, (h_both,) = both([s.inputs], [s.points])
+    torch.testing.assert_close(p_both[:, :, :8], p_angle)
+    for name in ("rho_d", "latent", "log_var", "pbr"):
+        torch.testing.assert_close(getattr(h_both, name), getattr(h_angle, name))
+    # The new channels: the ratio input's lift per angle bin, as `lift_binned` makes it.
+    obj, m = s.inputs, s.inputs.mask
+    ratio = obj.inputs[:, RATIO_INPUT].permute(0, 2, 3, 1)[m] * RATIO_MAX
+    cos_view = (obj.inputs[:, 4:7] * obj.inputs[:, 7:10]).sum(1)[m]
+    expected = lift_binned(ratio, obj.position[m], angle_bin(cos_view, 2), ratio_cfg.plane_resolution, 2)
+    torch.testing.assert_close(p_both[0, :, 8:], expected)
+    assert p_both.shape[2] == RATIO_PATH_CHANNELS + 2 + 2 * RATIO_BIN_CHANNELS
+    # `widened` by blocks: each plane's block grows at its own end.
+    grown_by_plane = widened(torch.arange(6.0).reshape(1, 6), torch.zeros(1, 9), blocks=3)
+    assert grown_by_plane is not None and grown_by_plane.tolist() == [[0, 1, 0, 2, 3, 0, 4, 5, 0]]
+    assert widened(torch.ones(1, 4), torch.zeros(1, 9), blocks=3) is None
+
+
 def test_pbr_gbuffer_channels_are_read_by_name(tmp_path):
     """OpenEXR sorts channels by name; the PBR G-buffer must come back as base rgb, roughness, metallic."""
     from neumatex_core.imageio import write_image

@@ -20,7 +20,9 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
    global context at every texel) turns the three lifted planes into the triplane [3, C, R, R]. With
    `LMRMConfig.ratio_path` its first `RATIO_PATH_CHANNELS` channels are instead the lifted per-texel mean and mean
    square of the shading-normalised colour itself (a fixed colour path to the decoders, nothing learnt; the U-Net
-   makes the other C - 6; docs/lmrm.md).
+   makes the other C - 6; docs/lmrm.md). With `LMRMConfig.ratio_bins` the triplane's last channels are the
+   shading-normalised colour's own binned lifts (per angle bin, then per gloss bin: the bin's mean RGB and log
+   count), fixed like the colour path, so the decoders read how the colour changes with the angle directly.
 5. Decoders from `neumatex_core.fields`: `MaterialDecoder` (rho_d, latent), `UncertaintyDecoder` (9 log-variances),
    `PBRDecoder` (base colour, roughness, metallic), all reading `Triplane.features(points)` [N, 3C]. With
    `LMRMConfig.family_head` a `FamilyDecoder` also reads them: the logits of the point's material family, a training
@@ -54,9 +56,11 @@ RATIO_INPUT = slice(CUE_INPUT.stop, CUE_INPUT.stop + 3)  # the ratio's channels 
 IN_CHANNELS = RATIO_INPUT.stop + 1  # image, mask, normal, to-camera, cues, ratio, lighting flag
 RATIO_MAX = 3.0  # linear pixel / diffuse cue is clipped to [0, RATIO_MAX] and divided by it
 # LMRMConfig.preset's names
-LMRMPreset = Literal["cpu", "cpu-ratio", "cpu-family", "cpu-angle", "cpu-angle-gloss", "gpu", "test"]
+LMRMPreset = Literal["cpu", "cpu-ratio", "cpu-family", "cpu-angle", "cpu-angle-gloss", "cpu-angle-ratio", "gpu",
+                     "test"]
 LMRM_PRESETS: tuple[str, ...] = get_args(LMRMPreset)
 RATIO_PATH_CHANNELS = 6  # LMRMConfig.ratio_path: the lifted ratio's mean and mean square (RGB each)
+RATIO_BIN_CHANNELS = 4  # LMRMConfig.ratio_bins, per bin: the lifted ratio's mean (RGB) and log(1 + count) / 5
 
 
 @dataclass
@@ -83,18 +87,36 @@ class LMRMConfig:
     angle_bins: int = 0
     # the per-view features also lifted per bin of `gloss_bin` (len(GLOSS_EDGES) + 1 bins; module docstring step 3)
     gloss_bins: bool = False
+    # with ratio_path and bins: the ratio's own lifts per bin as the triplane's last channels (module docstring, step
+    # 4), RATIO_BIN_CHANNELS per bin of angle_bins and gloss_bins
+    ratio_bins: bool = False
 
     def __post_init__(self) -> None:
-        if self.ratio_path and self.triplane_channels <= RATIO_PATH_CHANNELS:
-            raise ValueError(f"LMRM ratio_path takes {RATIO_PATH_CHANNELS} of the triplane's channels: it needs "
-                             f"triplane_channels > {RATIO_PATH_CHANNELS}, got {self.triplane_channels}")
+        if self.ratio_bins and not (self.ratio_path and self.n_bins):
+            raise ValueError("LMRM ratio_bins lifts the colour path per bin: it needs ratio_path and angle_bins or "
+                             "gloss_bins")
+        if self.triplane_channels <= self.fixed_channels:
+            raise ValueError(f"LMRM ratio_path / ratio_bins take {self.fixed_channels} of the triplane's channels: "
+                             f"it needs triplane_channels > {self.fixed_channels}, got {self.triplane_channels}")
+
+    @property
+    def n_bins(self) -> int:
+        """Bins the features are lifted in besides the plain lift: angle_bins, then gloss_bin's."""
+        return self.angle_bins + (len(GLOSS_EDGES) + 1 if self.gloss_bins else 0)
+
+    @property
+    def fixed_channels(self) -> int:
+        """Triplane channels that are lifted statistics, not the U-Net's output (ratio_path's, ratio_bins')."""
+        return ((RATIO_PATH_CHANNELS if self.ratio_path else 0)
+                + (RATIO_BIN_CHANNELS * self.n_bins if self.ratio_bins else 0))  # fmt: skip
 
     @classmethod
     def preset(cls, name: str) -> LMRMConfig:
         """The named config (`LMRM_PRESET_FIELDS`): 'cpu' (the defaults), 'cpu-ratio' (the same with the fixed colour
         path, `ratio_path`), 'cpu-family' (cpu-ratio with the family head, `family_head`), 'cpu-angle' (cpu-ratio
         with the features also lifted per viewing angle, `angle_bins`), 'cpu-angle-gloss' (cpu-angle with the
-        features also lifted per brightness of the reflected light, `gloss_bins`), 'gpu' (about 30x the
+        features also lifted per brightness of the reflected light, `gloss_bins`), 'cpu-angle-ratio' (cpu-angle with
+        the colour path also per angle bin, `ratio_bins`, 12 more triplane channels), 'gpu' (about 30x the
         compute: larger views, planes and widths) or 'test' (a few thousand parameters, for unit tests)."""
         if name not in LMRM_PRESET_FIELDS:
             raise ValueError(f"unknown LMRM preset {name!r} (expected one of {', '.join(LMRM_PRESETS)})")
@@ -106,10 +128,10 @@ class LMRMConfig:
         return cls(**data)
 
     def to_dict(self) -> dict[str, Any]:
-        """The fields; `ratio_path`, `family_head`, `angle_bins` and `gloss_bins` only when on, so the records of models
-        made before them stay as they are."""
+        """The fields; `ratio_path`, `family_head`, `angle_bins`, `gloss_bins` and `ratio_bins` only when on, so the
+        records of models made before them stay as they are."""
         out = asdict(self)
-        for flag in ("ratio_path", "family_head", "angle_bins", "gloss_bins"):
+        for flag in ("ratio_path", "family_head", "angle_bins", "gloss_bins", "ratio_bins"):
             if not out[flag]:
                 del out[flag]
         return out
@@ -122,6 +144,8 @@ LMRM_PRESET_FIELDS: dict[str, dict[str, Any]] = {
     "cpu-family": {"ratio_path": True, "family_head": True},
     "cpu-angle": {"ratio_path": True, "angle_bins": 3},
     "cpu-angle-gloss": {"ratio_path": True, "angle_bins": 3, "gloss_bins": True},
+    "cpu-angle-ratio": {"ratio_path": True, "angle_bins": 3, "ratio_bins": True,
+                        "triplane_channels": 16 + 3 * RATIO_BIN_CHANNELS},
     "gpu": {"view_resolution": 128, "view_channels": 64, "view_layers": 3, "feature_channels": 32,
             "plane_resolution": 96, "plane_channels": 64, "triplane_channels": 32, "decoder_hidden": 128},
     "test": {"view_resolution": 24, "view_channels": 8, "view_layers": 1, "feature_channels": 4, "plane_resolution": 8,
@@ -206,12 +230,16 @@ def lift_to_planes(features: torch.Tensor, points: torch.Tensor, resolution: int
     return torch.stack(planes).reshape(3, resolution, resolution, 2 * n_feat + 1).permute(0, 3, 1, 2)
 
 
+def angle_bin(cos_view: torch.Tensor, bins: int) -> torch.Tensor:
+    """[N] bin index in 0..bins-1 of cos_view [N] (n . v of the pixel each point came from; bins of equal width over
+    [0, 1])."""
+    return (cos_view.clamp(0, 1) * bins).long().clamp_max(bins - 1)
+
+
 def lift_by_angle(features: torch.Tensor, points: torch.Tensor, cos_view: torch.Tensor, resolution: int,
                   bins: int) -> torch.Tensor:
-    """`lift_binned` by cos_view [N] (n . v of the pixel each point came from; `bins` bins of equal width over
-    [0, 1])."""
-    which = (cos_view.clamp(0, 1) * bins).long().clamp_max(bins - 1)
-    return lift_binned(features, points, which, resolution, bins)
+    """`lift_binned` by `angle_bin`(cos_view, bins)."""
+    return lift_binned(features, points, angle_bin(cos_view, bins), resolution, bins)
 
 
 def gloss_bin(cues: torch.Tensor) -> torch.Tensor:
@@ -248,19 +276,18 @@ class PlaneNet(nn.Module):
     """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3 (+ bins * (F + 1)), R, R] (lifted mean, mean
     square, count, the object's global feature mean, plane id; with `angle_bins` then `lift_by_angle`'s channels and
     with `gloss_bins` then the gloss bins', last so that a model without them widens into one with them,
-    `train.init_from`) -> [B*3, C_out, R, R] (two levels down; C_out = C, or C - 6 with the ratio path)."""
+    `train.init_from`) -> [B*3, C_out, R, R] (two levels down; C_out = C less `LMRMConfig.fixed_channels`)."""
 
     def __init__(self, cfg: LMRMConfig) -> None:
         super().__init__()
-        n_bins = cfg.angle_bins + (len(GLOSS_EDGES) + 1 if cfg.gloss_bins else 0)
-        c_in = 3 * cfg.feature_channels + 1 + 3 + n_bins * (cfg.feature_channels + 1)
+        c_in = 3 * cfg.feature_channels + 1 + 3 + cfg.n_bins * (cfg.feature_channels + 1)
         c1, c2 = cfg.plane_channels, 2 * cfg.plane_channels
         self.enc1 = nn.Sequential(_conv(c_in, c1), _conv(c1, c1))
         self.enc2 = nn.Sequential(_conv(c1, c2), _conv(c2, c2))
         self.mid = nn.Sequential(_conv(c2, c2), _conv(c2, c2))
         self.dec2 = _conv(2 * c2, c1)
         self.dec1 = nn.Sequential(_conv(2 * c1, c1), _conv(c1, c1))
-        c_out = cfg.triplane_channels - (RATIO_PATH_CHANNELS if cfg.ratio_path else 0)
+        c_out = cfg.triplane_channels - cfg.fixed_channels
         self.out = nn.Conv2d(c1, c_out, 1)
         self.skip = nn.Conv2d(c_in, c_out, 1)  # linear path: lifted means straight to the triplane
 
@@ -318,7 +345,7 @@ class LMRMNet(nn.Module):
     def planes(self, objects: list[ObjectInputs]) -> torch.Tensor:
         """Triplane planes [B, 3, C, R, R] of B objects."""
         r = self.cfg.plane_resolution
-        lifted, ratios, binned = [], [], []
+        lifted, ratios, binned, ratio_binned = [], [], [], []
         for obj in objects:
             feats = self.view_encoder(obj.inputs)  # [V, F, H, W]
             m = obj.mask
@@ -327,25 +354,26 @@ class LMRMNet(nn.Module):
             planes = lift_to_planes(per_pixel, pts, r)
             context = per_pixel.mean(0)[None, :, None, None].expand(3, -1, r, r)  # object-level colour, gloss
             lifted.append(torch.cat([planes, context], dim=1))
-            bins = []  # the angle bins', then the gloss bins'
+            bin_sets = []  # (each point's bin [P], the number of bins): the angle bins, then the gloss bins
             if self.cfg.angle_bins:
                 cos_view = (obj.inputs[:, NORMAL_INPUT] * obj.inputs[:, TO_CAMERA_INPUT]).sum(1)[m]  # [P]
-                bins.append(lift_by_angle(per_pixel, pts, cos_view, r, self.cfg.angle_bins))
+                bin_sets.append((angle_bin(cos_view, self.cfg.angle_bins), self.cfg.angle_bins))
             if self.cfg.gloss_bins:
-                which = gloss_bin(obj.inputs[:, CUE_INPUT].permute(0, 2, 3, 1)[m])  # [P]
-                bins.append(lift_binned(per_pixel, pts, which, r, len(GLOSS_EDGES) + 1))
-            if bins:
-                binned.append(torch.cat(bins, dim=1))
+                bin_sets.append((gloss_bin(obj.inputs[:, CUE_INPUT].permute(0, 2, 3, 1)[m]), len(GLOSS_EDGES) + 1))
+            if bin_sets:
+                binned.append(torch.cat([lift_binned(per_pixel, pts, w, r, n) for w, n in bin_sets], dim=1))
             if self.cfg.ratio_path:  # the ratio input back in [0, RATIO_MAX], lifted: mean, mean square
                 ratio = obj.inputs[:, RATIO_INPUT].permute(0, 2, 3, 1)[m] * RATIO_MAX
                 ratios.append(lift_to_planes(ratio, pts, r)[:, :RATIO_PATH_CHANNELS])
+                if self.cfg.ratio_bins:
+                    ratio_binned.append(torch.cat([lift_binned(ratio, pts, w, r, n) for w, n in bin_sets], dim=1))
         x = torch.stack(lifted)  # [B, 3, 3F+1, R, R]
         b = x.shape[0]
         plane_id = torch.eye(3, dtype=x.dtype, device=x.device)[None, :, :, None, None].expand(b, 3, 3, r, r)
         x = torch.cat([x, plane_id, *([torch.stack(binned)] if binned else [])], dim=2).reshape(b * 3, -1, r, r)
         out = self.plane_net(x).reshape(b, 3, -1, r, r)
         if ratios:
-            out = torch.cat([torch.stack(ratios), out], dim=2)
+            out = torch.cat([torch.stack(ratios), out, *([torch.stack(ratio_binned)] if ratio_binned else [])], dim=2)
         return out
 
     def features(self, planes: torch.Tensor, points: torch.Tensor) -> torch.Tensor:

@@ -34,6 +34,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from neumatex_core.config import option
 from neumatex_core.eval.metrics import psnr
+from neumatex_core.fields.triplane import PLANE_AXES
 from neumatex_core.lmrm.data import Augment, LMRMDataset, Sample, make_sample, training_mean
 from neumatex_core.lmrm.inference import DATA_DIR, save_lmrm
 from neumatex_core.lmrm.losses import LossWeights, family_accuracy, lmrm_loss, material_mse, object_weights
@@ -174,23 +175,28 @@ class _Order:
         return picked
 
 
-def widened(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor | None:
+def widened(source: torch.Tensor, target: torch.Tensor, blocks: int = 1) -> torch.Tensor | None:
     """`source` as a tensor of `target`'s shape when the two differ only by `target` having more input channels
     (dim 1, e.g. a convolution's weight [out, in, k, k] given `angle_bins`' channels): its leading channels copied,
-    the new ones zero, so the widened layer computes what `source` did until training moves it; else None."""
+    the new ones zero, so the widened layer computes what `source` did until training moves it; else None. With
+    `blocks`, the input is that many equal blocks (a decoder's [3 planes x C] triplane features given `ratio_bins`'
+    channels) and each block grows at its end."""
     if (source.dim() < 2 or source.dim() != target.dim() or source.shape[1] >= target.shape[1]
+            or source.shape[1] % blocks or target.shape[1] % blocks
             or source.shape[:1] + source.shape[2:] != target.shape[:1] + target.shape[2:]):  # fmt: skip
         return None
     out = torch.zeros_like(target)
-    out[:, : source.shape[1]] = source.to(target.dtype)
+    old, new = source.shape[1] // blocks, target.shape[1] // blocks
+    for b in range(blocks):
+        out[:, b * new: b * new + old] = source[:, b * old: (b + 1) * old].to(target.dtype)
     return out
 
 
 def init_from(net: LMRMNet, weights: Path) -> int:
     """Copy into `net` the tensors of the LMRM weights file whose name and shape match (another preset's model: a
     head it lacks keeps its fresh initialisation), and those that `widened` fits (a layer reading new input channels
-    starts as the old one, zero on the new channels); returns how many were copied. Raises ValueError naming the file
-    when it cannot be read or shares no tensor with `net`."""
+    starts as the old one, zero on the new channels, a decoder's per plane); returns how many were copied. Raises
+    ValueError naming the file when it cannot be read or shares no tensor with `net`."""
     from safetensors.torch import load_file
 
     try:
@@ -200,7 +206,8 @@ def init_from(net: LMRMNet, weights: Path) -> int:
     state = net.state_dict()
     matching = {k: v for k, v in source.items() if k in state and state[k].shape == v.shape}
     for k, v in source.items():
-        if k in state and k not in matching and (grown := widened(v, state[k])) is not None:
+        blocks = len(PLANE_AXES) if k.split(".")[0].endswith("_decoder") else 1  # decoders read [3 planes x C]
+        if k in state and k not in matching and (grown := widened(v, state[k], blocks)) is not None:
             matching[k] = grown
     if not matching:
         raise ValueError(f"{weights}: no tensor matches this model's names and shapes (another model size?)")
