@@ -157,25 +157,33 @@ def test_lift_by_angle_means_each_texels_points_per_viewing_angle():
     torch.testing.assert_close((binned[:, :, :4] * counts).sum(1) / counts.sum(1), lift_to_planes(f, many, 3)[:, :4])
 
 
+def _widened_pair(source_cfg: LMRMConfig, target_cfg: LMRMConfig, tmp_path: Path) -> tuple[LMRMNet, LMRMNet, list[str]]:
+    """A model of source_cfg (seed 0), saved, and a model of target_cfg (seed 1) started from it by `init_from`
+    (`--init`): (source, target, the names of the target's tensors that grew)."""
+    from safetensors.torch import save_file
+
+    from neumatex_core.lmrm.train import init_from
+
+    torch.manual_seed(0)
+    source = LMRMNet(source_cfg)
+    save_file({k: v.contiguous() for k, v in source.state_dict().items()}, str(tmp_path / "source.safetensors"))
+    torch.manual_seed(1)
+    target = LMRMNet(target_cfg)
+    assert init_from(target, tmp_path / "source.safetensors") == len(source.state_dict())
+    return source, target, sorted(k for k, v in target.state_dict().items() if v.shape != source.state_dict()[k].shape)
+
+
 def test_a_model_widens_into_the_angle_bins_unchanged_and_then_learns_them(tiny_data, tmp_path):
     # `--init` from a model without angle bins: its layers that read the new channels start as before with zeros
     # there (`widened`), so the wider model predicts exactly what the plain one did; training then moves them.
-    from safetensors.torch import save_file
-
     from neumatex_core.lmrm.losses import LossWeights, lmrm_loss
-    from neumatex_core.lmrm.train import init_from, widened
+    from neumatex_core.lmrm.train import widened
 
     plain_cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True)
     wide_cfg = replace(plain_cfg, angle_bins=3)
     assert "angle_bins" not in plain_cfg.to_dict() and LMRMConfig.from_dict(wide_cfg.to_dict()) == wide_cfg
-    torch.manual_seed(0)
-    plain = LMRMNet(plain_cfg)
-    save_file({k: v.contiguous() for k, v in plain.state_dict().items()}, str(tmp_path / "plain.safetensors"))
-    torch.manual_seed(1)
-    wide = LMRMNet(wide_cfg)
-    assert init_from(wide, tmp_path / "plain.safetensors") == len(plain.state_dict())
-    grown = [k for k, v in wide.state_dict().items() if v.shape != plain.state_dict()[k].shape]
-    assert sorted(grown) == ["plane_net.enc1.0.0.weight", "plane_net.skip.weight"]
+    plain, wide, grown = _widened_pair(plain_cfg, wide_cfg, tmp_path)
+    assert grown == ["plane_net.enc1.0.0.weight", "plane_net.skip.weight"]
     n_new = 3 * (wide_cfg.feature_channels + 1)
     for k in grown:
         assert float(wide.state_dict()[k][:, -n_new:].abs().max()) == 0
@@ -202,10 +210,7 @@ def test_a_model_widens_into_the_angle_bins_unchanged_and_then_learns_them(tiny_
 def test_gloss_bins_sort_pixels_by_the_reflected_lights_brightness_and_widen_a_model_with_angle_bins(tiny_data,
                                                                                                         tmp_path):
     # `gloss_bin`: log(sharpest glossy cue / diffuse cue) against GLOSS_EDGES, read from view_inputs' squashed cues.
-    from safetensors.torch import save_file
-
     from neumatex_core.lmrm.model import CUE_INPUT, GLOSS_EDGES, gloss_bin
-    from neumatex_core.lmrm.train import init_from
 
     raw = torch.ones(3, CUE_INPUT.stop - CUE_INPUT.start)
     raw[:, 3:6] = torch.tensor([[0.2], [0.6], [1.2]])  # the sharp reflection at 0.2, 0.6, 1.2 times the diffuse light
@@ -215,11 +220,7 @@ def test_gloss_bins_sort_pixels_by_the_reflected_lights_brightness_and_widen_a_m
     angle_cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True, angle_bins=2)
     both_cfg = replace(angle_cfg, gloss_bins=True)
     assert "gloss_bins" not in angle_cfg.to_dict() and LMRMConfig.from_dict(both_cfg.to_dict()) == both_cfg
-    torch.manual_seed(0)
-    angle = LMRMNet(angle_cfg)
-    save_file({k: v.contiguous() for k, v in angle.state_dict().items()}, str(tmp_path / "angle.safetensors"))
-    both = LMRMNet(both_cfg)
-    assert init_from(both, tmp_path / "angle.safetensors") == len(angle.state_dict())
+    angle, both, _ = _widened_pair(angle_cfg, both_cfg, tmp_path)
     weight = both.state_dict()["plane_net.skip.weight"]
     assert weight.shape[1] - angle.state_dict()["plane_net.skip.weight"].shape[1] == 3 * (both_cfg.feature_channels + 1)
     ds = LMRMDataset([tiny_data], tiny_data.parent / "cache")
@@ -233,10 +234,8 @@ def test_ratio_bins_put_the_colours_own_binned_lift_last_in_the_triplane_and_wid
                                                                                                         tmp_path):
     # `ratio_bins`: the triplane's last channels are the shading-normalised colour lifted per angle bin (each bin's
     # mean RGB and log count), not learnt; a model without them widens into one with them (the decoders per plane).
-    from safetensors.torch import save_file
-
     from neumatex_core.lmrm.model import RATIO_BIN_CHANNELS, RATIO_PATH_CHANNELS, angle_bin, lift_binned
-    from neumatex_core.lmrm.train import init_from, widened
+    from neumatex_core.lmrm.train import widened
 
     angle_cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True, angle_bins=2)
     ratio_cfg = replace(angle_cfg, ratio_bins=True, triplane_channels=8 + 2 * RATIO_BIN_CHANNELS)
@@ -245,13 +244,7 @@ def test_ratio_bins_put_the_colours_own_binned_lift_last_in_the_triplane_and_wid
         replace(angle_cfg, ratio_bins=True, angle_bins=0)
     with pytest.raises(ValueError, match="triplane_channels"):
         replace(angle_cfg, ratio_bins=True)  # 8 channels cannot hold 6 + 2 x 4 fixed ones
-    torch.manual_seed(0)
-    angle = LMRMNet(angle_cfg)
-    save_file({k: v.contiguous() for k, v in angle.state_dict().items()}, str(tmp_path / "angle.safetensors"))
-    torch.manual_seed(1)
-    both = LMRMNet(ratio_cfg)
-    assert init_from(both, tmp_path / "angle.safetensors") == len(angle.state_dict())
-    grown = sorted(k for k, v in both.state_dict().items() if v.shape != angle.state_dict()[k].shape)
+    angle, both, grown = _widened_pair(angle_cfg, ratio_cfg, tmp_path)
     assert grown == ["material_decoder.net.0.weight", "pbr_decoder.net.0.weight", "uncertainty_decoder.net.0.weight"]
     ds = LMRMDataset([tiny_data], tiny_data.parent / "cache")
     s = ds.sample(0, torch.Generator().manual_seed(0), Augment.none(), 128)
