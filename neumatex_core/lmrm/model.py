@@ -22,7 +22,8 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
    square of the shading-normalised colour itself (a fixed colour path to the decoders, nothing learnt; the U-Net
    makes the other C - 6; docs/lmrm.md). With `LMRMConfig.ratio_bins` the triplane's last channels are the
    shading-normalised colour's own binned lifts (per angle bin, then per gloss bin: the bin's mean RGB and log
-   count), fixed like the colour path, so the decoders read how the colour changes with the angle directly.
+   count), fixed like the colour path, so the decoders read how the colour changes with the angle directly
+   (measured: no gain; docs/lmrm.md).
 5. Decoders from `neumatex_core.fields`: `MaterialDecoder` (rho_d, latent), `UncertaintyDecoder` (9 log-variances),
    `PBRDecoder` (base colour, roughness, metallic), all reading `Triplane.features(points)` [N, 3C]. With
    `LMRMConfig.family_head` a `FamilyDecoder` also reads them: the logits of the point's material family, a training
