@@ -32,7 +32,7 @@ from neumatex_core.lmrm import LMRM, LMRMConfig, LMRMError, LMRMNet, LMRMPredict
 from neumatex_core.lmrm.data import Augment, LMRMDataset, load_synth_object
 from neumatex_core.lmrm.inference import DEFAULT_RECORD, DEFAULT_WEIGHTS
 from neumatex_core.lmrm.losses import MSE_FLOOR, beta_nll, object_weights
-from neumatex_core.lmrm.model import IN_CHANNELS, RATIO_INPUT, RATIO_MAX, lift_by_angle, lift_to_planes
+from neumatex_core.lmrm.model import IN_CHANNELS, RATIO_INPUT, RATIO_MAX, angle_bin, lift_binned, lift_to_planes
 from neumatex_core.lmrm.train import TrainLMRMConfig, train_lmrm
 from neumatex_core.materials.neural_basis import load_basis
 from neumatex_core.synth import SynthConfig, generate
@@ -136,11 +136,11 @@ def test_the_ratio_path_puts_the_lifted_shading_normalised_colour_into_the_tripl
         replace(cfg, triplane_channels=6)
 
 
-def test_lift_by_angle_means_each_texels_points_per_viewing_angle():
+def test_lift_binned_by_angle_means_each_texels_points_per_viewing_angle():
     # Two points in one texel seen at n . v = 0.1 (grazing) and 0.9 (head-on), one alone in another; 3 bins.
     pts = torch.tensor([[-0.9, -0.9, -0.9], [-0.8, -0.95, 0.5], [0.9, 0.9, 0.9]])
     feats = torch.tensor([[1.0, 10.0], [3.0, 30.0], [5.0, 50.0]])
-    planes = lift_by_angle(feats, pts, torch.tensor([0.1, 0.9, 0.5]), 4, 3)  # [3, bins * (F + 1), R, R]
+    planes = lift_binned(feats, pts, angle_bin(torch.tensor([0.1, 0.9, 0.5]), 3), 4, 3)  # [3, bins * (F + 1), R, R]
     assert planes.shape == (3, 9, 4, 4)
     one = torch.log1p(torch.tensor(1.0)).item() / 5
     xy = planes[0, :, 0, 0].reshape(3, 3)  # bins x (F features, count)
@@ -152,7 +152,7 @@ def test_lift_by_angle_means_each_texels_points_per_viewing_angle():
     # Weighted by their counts the bins give back the texel's plain mean (`lift_to_planes`).
     many = torch.rand(500, 3) * 2 - 1
     f, cos = torch.rand(500, 4), torch.rand(500)
-    binned = lift_by_angle(f, many, cos, 3, 2).reshape(3, 2, 5, 3, 3)
+    binned = lift_binned(f, many, angle_bin(cos, 2), 3, 2).reshape(3, 2, 5, 3, 3)
     counts = torch.expm1(binned[:, :, 4:] * 5)
     torch.testing.assert_close((binned[:, :, :4] * counts).sum(1) / counts.sum(1), lift_to_planes(f, many, 3)[:, :4])
 
@@ -234,7 +234,7 @@ def test_ratio_bins_put_the_colours_own_binned_lift_last_in_the_triplane_and_wid
                                                                                                         tmp_path):
     # `ratio_bins`: the triplane's last channels are the shading-normalised colour lifted per angle bin (each bin's
     # mean RGB and log count), not learnt; a model without them widens into one with them (the decoders per plane).
-    from neumatex_core.lmrm.model import RATIO_BIN_CHANNELS, RATIO_PATH_CHANNELS, angle_bin, lift_binned
+    from neumatex_core.lmrm.model import RATIO_BIN_CHANNELS, RATIO_PATH_CHANNELS
     from neumatex_core.lmrm.train import widened
 
     angle_cfg = replace(LMRMConfig.preset("test"), triplane_channels=8, ratio_path=True, angle_bins=2)

@@ -12,10 +12,10 @@ Per object, for each of the V views (V = 23 preset views, any V >= 1 works):
    XZ) gets the scatter-mean of the features of the points falling into each of its R x R texels, their mean
    square (view-dependent effects, e.g. highlights, raise it) and log(1 + count) (`lift_to_planes`). With
    `LMRMConfig.angle_bins` also the mean per texel within each bin of the viewing angle's cosine n . v
-   (`lift_by_angle`): how a point looks head-on against at grazing angles, which a sheen, dust or a coat's Fresnel
-   change and a plain diffuse base does not. With `LMRMConfig.gloss_bins` also per bin of how bright the sharp
-   reflection of the lighting is against the diffuse light at the pixel (`gloss_bin`): a coat or a metal follows the
-   reflected light, a diffuse base does not.
+   (`angle_bin`, `lift_binned`): how a point looks head-on against at grazing angles, which a sheen, dust or a
+   coat's Fresnel change and a plain diffuse base does not. With `LMRMConfig.gloss_bins` also per bin of how bright
+   the sharp reflection of the lighting is against the diffuse light at the pixel (`gloss_bin`): a coat or a metal
+   follows the reflected light, a diffuse base does not.
 4. A shared U-Net (`PlaneNet`, with a one-hot plane-id input and the mean feature of all the object's points as
    global context at every texel) turns the three lifted planes into the triplane [3, C, R, R]. With
    `LMRMConfig.ratio_path` its first `RATIO_PATH_CHANNELS` channels are instead the lifted per-texel mean and mean
@@ -83,7 +83,7 @@ class LMRMConfig:
     # a fourth decoder classifies each point's material family (FAMILIES), trained with cross-entropy: the latents'
     # error is mostly which family a region is; the head did not reduce it (docs/lmrm.md)
     family_head: bool = False
-    # > 0: the per-view features are also lifted per bin of n . v (`lift_by_angle`, module docstring step 3), this
+    # > 0: the per-view features are also lifted per bin of n . v (`angle_bin`, module docstring step 3), this
     # many bins of equal width in the cosine over [0, 1]
     angle_bins: int = 0
     # the per-view features also lifted per bin of `gloss_bin` (len(GLOSS_EDGES) + 1 bins; module docstring step 3)
@@ -237,12 +237,6 @@ def angle_bin(cos_view: torch.Tensor, bins: int) -> torch.Tensor:
     return (cos_view.clamp(0, 1) * bins).long().clamp_max(bins - 1)
 
 
-def lift_by_angle(features: torch.Tensor, points: torch.Tensor, cos_view: torch.Tensor, resolution: int,
-                  bins: int) -> torch.Tensor:
-    """`lift_binned` by `angle_bin`(cos_view, bins)."""
-    return lift_binned(features, points, angle_bin(cos_view, bins), resolution, bins)
-
-
 def gloss_bin(cues: torch.Tensor) -> torch.Tensor:
     """[...] bin index in 0..len(GLOSS_EDGES) of squashed lighting cues [..., N_CUES] (`view_inputs`' c / (1 + c)):
     log(sharpest glossy cue / diffuse cue), each the mean over RGB, against GLOSS_EDGES."""
@@ -275,8 +269,8 @@ def lift_binned(features: torch.Tensor, points: torch.Tensor, which: torch.Tenso
 
 class PlaneNet(nn.Module):
     """Shared U-Net over the three lifted planes: [B*3, 3F + 1 + 3 (+ bins * (F + 1)), R, R] (lifted mean, mean
-    square, count, the object's global feature mean, plane id; with `angle_bins` then `lift_by_angle`'s channels and
-    with `gloss_bins` then the gloss bins', last so that a model without them widens into one with them,
+    square, count, the object's global feature mean, plane id; with `angle_bins` then the angle bins' `lift_binned`
+    channels and with `gloss_bins` then the gloss bins', last so that a model without them widens into one with them,
     `train.init_from`) -> [B*3, C_out, R, R] (two levels down; C_out = C less `LMRMConfig.fixed_channels`)."""
 
     def __init__(self, cfg: LMRMConfig) -> None:
