@@ -398,7 +398,8 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
             "train_l_mat_last50": sum(h["l_mat"] for h in tail) / len(tail),
             "train_nll_last50": sum(h["nll"] for h in tail) / len(tail),
             "validation": validation[-1] if validation else {},
-            "training_mean": [round(float(x), 6) for x in training_mean(order.dataset)],
+            "training_mean": [round(float(x), 6) for x in (training_mean(order.dataset) if val_mean is None
+                                                               else val_mean)],
         }  # fmt: skip
         info = {"metrics": metrics, "train_config": asdict(cfg),
                 "data": {"folders": [str(r) for r in roots], "objects": len(order.dataset),
