@@ -313,8 +313,8 @@ def training_mean(dataset: LMRMDataset, limit: int | None = None) -> torch.Tenso
     mean-material baseline. Every object by default: a 64-object subsample moved the baseline on the LMRM test
     split by up to 0.1 dB between two training sets, as much as the gains it is set against (docs/lmrm.md)."""
     n = len(dataset)
-    k_max = n if limit is None else min(n, limit)
-    picks = sorted({int(round(k * (n - 1) / max(k_max - 1, 1))) for k in range(k_max)})
+    n_picks = n if limit is None else min(n, limit)
+    picks = sorted({int(round(k * (n - 1) / max(n_picks - 1, 1))) for k in range(n_picks)})
     total, count = torch.zeros(N_TARGETS, dtype=torch.float64), 0
     for i in picks:
         t = dataset.load(i)["targets"].double().cpu()

@@ -393,13 +393,13 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
             validation.append({"step": step, **evaluate(ema, val_set, device, val_mean)})
             save_checkpoint()
         tail = history[-50:]
+        mean = val_mean if val_mean is not None else training_mean(order.dataset)  # one pass over every object
         metrics = {
             "steps": step, "train_objects": len(order.dataset), "validation_objects": len(val_set),
             "train_l_mat_last50": sum(h["l_mat"] for h in tail) / len(tail),
             "train_nll_last50": sum(h["nll"] for h in tail) / len(tail),
             "validation": validation[-1] if validation else {},
-            "training_mean": [round(float(x), 6) for x in (training_mean(order.dataset) if val_mean is None
-                                                               else val_mean)],
+            "training_mean": [round(float(x), 6) for x in mean],
         }  # fmt: skip
         info = {"metrics": metrics, "train_config": asdict(cfg),
                 "data": {"folders": [str(r) for r in roots], "objects": len(order.dataset),
