@@ -327,7 +327,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
         return ds
 
     val_set = validation_set()
-    val_mean = training_mean(order.dataset) if (val_set.folders and rank == 0) else None
+    val_mean: torch.Tensor | None = None  # training_mean, at the first validation: a pass over every object
     augment = Augment() if cfg.augment else Augment.none()
     started = time.monotonic()
 
@@ -389,11 +389,11 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
     save_checkpoint()
     metrics: dict[str, Any] = {}
     if rank == 0 and not stopped_early:
+        mean = val_mean if val_mean is not None else training_mean(order.dataset)
         if val_set.folders and (not validation or validation[-1]["step"] != step):
-            validation.append({"step": step, **evaluate(ema, val_set, device, val_mean)})
+            validation.append({"step": step, **evaluate(ema, val_set, device, mean)})
             save_checkpoint()
         tail = history[-50:]
-        mean = val_mean if val_mean is not None else training_mean(order.dataset)  # one pass over every object
         metrics = {
             "steps": step, "train_objects": len(order.dataset), "validation_objects": len(val_set),
             "train_l_mat_last50": sum(h["l_mat"] for h in tail) / len(tail),
