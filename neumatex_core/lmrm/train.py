@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -327,7 +328,12 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
         return ds
 
     val_set = validation_set()
-    val_mean: torch.Tensor | None = None  # training_mean, at the first validation: a pass over every object
+
+    @functools.cache
+    def mean_material() -> torch.Tensor:
+        """[14] training_mean, computed at first need (a pass over every object, so not at start-up), then reused."""
+        return training_mean(order.dataset)
+
     augment = Augment() if cfg.augment else Augment.none()
     started = time.monotonic()
 
@@ -379,8 +385,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
         if progress is not None and rank == 0:
             progress(step, cfg.steps, row)
         if rank == 0 and (step % cfg.val_every == 0 or step == cfg.steps) and (val_set := validation_set()).folders:
-            val_mean = training_mean(order.dataset) if val_mean is None else val_mean
-            validation.append({"step": step, **evaluate(ema, val_set, device, val_mean)})
+            validation.append({"step": step, **evaluate(ema, val_set, device, mean_material())})
         if step % cfg.checkpoint_every == 0:
             save_checkpoint()
         if cfg.max_minutes > 0 and (time.monotonic() - started) / 60 > cfg.max_minutes and step < cfg.steps:
@@ -389,7 +394,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
     save_checkpoint()
     metrics: dict[str, Any] = {}
     if rank == 0 and not stopped_early:
-        mean = val_mean if val_mean is not None else training_mean(order.dataset)
+        mean = mean_material()
         if val_set.folders and (not validation or validation[-1]["step"] != step):
             validation.append({"step": step, **evaluate(ema, val_set, device, mean)})
             save_checkpoint()
