@@ -204,3 +204,69 @@ def test_the_latent_starts_benchmarks_fit_reproduces_the_appearance_from_a_nearb
         near, err = bench.fit_latents(basis, regions, target, start[k], steps=150)
         assert float(err[k]) < 0.05 * float(before), (k, err, before)  # the fit reproduces the appearance
         assert bench.latent_psnr(near[k:k + 1], truth[k:k + 1]) > bench.latent_psnr(start[k:k + 1], truth[k:k + 1])
+
+
+def test_the_lmrm_swap_benchmark_pairs_each_variant_per_object_where_both_runs_finished(tmp_path: Path) -> None:
+    # bench/lmrm_swap.py: candidate - shipped per variant and metric, paired per object, only on objects where both
+    # evaluation folders hold every variant of the default table; and the default - PBR under each LMRM.
+    import json
+
+    swap = bench_module("lmrm_swap")
+    default, pbr = swap.DEFAULT_VARIANT, swap.PBR
+    shipped, candidate = tmp_path / "shipped", tmp_path / "cand"
+    # per object: (PBR clean PathTrace, default clean PathTrace) in each run
+    scores = {shipped: {"test-000000": (30.0, 35.0), "test-000001": (28.0, 31.0), "test-000002": (25.0, 40.0)},
+              candidate: {"test-000000": (29.0, 36.0), "test-000001": (27.0, 31.5)}}
+    for folder, rows in scores.items():
+        for obj, (p, d) in rows.items():
+            for variant, value in ((pbr, p), ("pbr_tuned_0001", p + 0.5), (default, d)):
+                f = folder / "results" / obj / f"{variant}.json"
+                f.parent.mkdir(parents=True, exist_ok=True)
+                f.write_text(json.dumps({"psnr_pathtrace_clean": value, "psnr_basecolor": value - 10.0}))
+    # a half-finished object of the candidate (no default yet) is left out
+    half = candidate / "results" / "test-000002" / f"{pbr}.json"
+    half.parent.mkdir(parents=True)
+    half.write_text(json.dumps({"psnr_pathtrace_clean": 50.0}))
+    res, objects = swap.joined(shipped, candidate)
+    assert objects == ["test-000000", "test-000001"]
+    figures = swap.swap_figures(res)
+    d = figures[default]["psnr_pathtrace_clean"]
+    assert (d["shipped"], d["candidate"], d["n"], d["ahead"]) == (33.0, 33.75, 2, 2)
+    assert d["diff"] == pytest.approx(0.75) and d["se"] == pytest.approx(0.25)  # diffs 1.0, 0.5: std 0.354 / sqrt 2
+    p = figures[pbr]["psnr_pathtrace_clean"]
+    assert p["diff"] == pytest.approx(-1.0) and p["se"] == pytest.approx(0.0) and p["ahead"] == 0
+    assert figures[default]["psnr_basecolor"]["diff"] == pytest.approx(0.75)
+    gap = figures["default_minus_pbr"]["psnr_pathtrace_clean"]
+    assert gap["shipped"][0] == pytest.approx(4.0) and gap["candidate"][0] == pytest.approx(5.75)
+    swap.keep(candidate, tmp_path / "kept")
+    assert (tmp_path / "kept" / "cand" / "results" / "test-000001" / f"{default}.json").is_file()
+
+
+def test_the_lmrm_restate_benchmark_fits_planes_through_the_shipped_decoders_to_the_candidates_heads() -> None:
+    # bench/lmrm_restate.py: a triplane read by one model's decoders is fitted so that they give, at surface points,
+    # what another model's decoders give through its own triplane (design note 95); the decoders are not touched.
+    from neumatex_core.fields.decoders import PBRDecoder, UncertaintyDecoder
+    from neumatex_core.lmrm.inference import LMRMPrediction
+
+    restate = bench_module("lmrm_restate")
+
+    torch.manual_seed(1)
+    decoders = (MaterialDecoder(12, 16), UncertaintyDecoder(12, 16), PBRDecoder(12, 16))
+    with torch.no_grad():  # outputs that vary over the features (at their initial scale they sit near 0.5)
+        for d in decoders:
+            for w in d.parameters():
+                w.mul_(4.0)
+    # the candidate: other planes read by the same decoders, so its heads are reachable exactly
+    shipped = LMRMPrediction(Triplane(channels=4, resolution=8, init_std=0.5), *decoders)
+    candidate = LMRMPrediction(Triplane(channels=4, resolution=8, init_std=0.5), *decoders)
+    before = {k: v.clone() for k, v in shipped.pbr_decoder.state_dict().items()}
+    points = torch.rand(2048, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
+    fitted, err = restate.restate(candidate, shipped, points, steps=400, lr=0.05, batch=512)
+    assert err["pbr_start"] > 0.01 and err["material_start"] > 0.01
+    assert err["pbr_end"] < err["pbr_start"] / 20 and err["material_end"] < err["material_start"] / 20
+    with torch.no_grad():
+        got, want = restate.heads(shipped, fitted, points), restate.heads(candidate, candidate.triplane, points)
+    assert got.shape == (2048, 14)  # PBR base colour, roughness, metallic, rho_d, latent on the [0, 1] scale
+    assert float(((got - want) ** 2).mean()) == pytest.approx((5 * err["pbr_end"] + 9 * err["material_end"]) / 14)
+    assert all(torch.equal(before[k], v) for k, v in shipped.pbr_decoder.state_dict().items())
+    assert not torch.equal(fitted.planes, shipped.triplane.planes)  # the shipped prediction's planes are copied

@@ -1,0 +1,143 @@
+"""A candidate LMRM's prediction restated through the shipped model's decoders: does the extraction's default gain
+from a better prediction when the TTO keeps the decoders it works well with? (docs/design-notes.md item 95)
+
+The default reads the LMRM's triplane through the LMRM's own decoders: its PBR phase starts from the PBR head, and its
+neural phase fine-tunes a copy of the material decoder. A candidate that predicts better alone made the default worse
+(bench/lmrm_swap.py). This separates the prediction from the decoders: per object, a triplane is fitted (Adam on its
+planes, from the shipped prediction's) so that the shipped decoders give, at area-uniform surface points, what the
+candidate's give there: the PBR head's base colour, roughness and metallic and the material decoder's base colour and
+latent (squared error, latents mapped to [0, 1] as the G-buffer metric does). The result is written as the lmrm stage
+of a new evaluation folder (the shipped decoders and the fitted planes; validate and prepare_views copied), so
+`neumatex eval --out` that folder runs the default table from it without predicting again:
+
+    .venv/bin/python bench/lmrm_restate.py data/benchmark-test --shipped runs/swap/shipped \\
+        --candidate runs/swap/NAME --out runs/swap/NAME-restated --objects first:8
+    .venv/bin/neumatex eval data/benchmark-test --tables default --relight-views 0,8,16 --objects first:8 \\
+        --out runs/swap/NAME-restated --doc '' --record ''
+    .venv/bin/python bench/lmrm_swap.py runs/swap/shipped runs/swap/NAME-restated
+
+`--shipped` and `--candidate` are evaluation folders whose lmrm stage has run on the objects (work/<object>/lmrm/).
+Appends one JSON line per run to bench/results/lmrm_restate.jsonl: per object the fit's final error on each head.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from common import argument_parser, write_result  # noqa: E402
+
+from neumatex_core.atomic import write_json_atomic  # noqa: E402
+from neumatex_core.capture import load_capture  # noqa: E402
+from neumatex_core.eval.suite import select_objects  # noqa: E402
+from neumatex_core.fields.triplane import Triplane  # noqa: E402
+from neumatex_core.lmrm.inference import LMRMPrediction  # noqa: E402
+from neumatex_core.pipeline import load_prediction, stage_dir  # noqa: E402
+
+POINTS = 1 << 15  # area samples the planes are fitted on (as the default's start fit, tto/pbr_start.py)
+STEPS, LR, BATCH = 1500, 0.05, 8192  # the start fit's schedule (TTOConfig.pbr_fit_*)
+
+
+def heads(pred: LMRMPrediction, triplane: Triplane, points: torch.Tensor) -> torch.Tensor:
+    """[N, 8 + D] what the PBR head and the material decoder give at points [N, 3] through `triplane`: PBR base colour,
+    roughness, metallic, then rho_d and (latent + 1) / 2 (the metric's scale)."""
+    feats = triplane.features(points)
+    base, rough, metal = pred.pbr_decoder(feats)
+    rho_d, latent = pred.material_decoder(feats)
+    return torch.cat([base, rough.reshape(-1, 1), metal.reshape(-1, 1), rho_d, (latent + 1) / 2], dim=-1)
+
+
+def restate(candidate: LMRMPrediction, shipped: LMRMPrediction, points: torch.Tensor, steps: int = STEPS,
+            lr: float = LR, batch: int = BATCH, seed: int = 0) -> tuple[Triplane, dict[str, float]]:
+    """A triplane through which `shipped`'s decoders give `candidate`'s heads at points [P, 3] (Adam on the planes,
+    from `shipped`'s, `steps` steps of `batch` points drawn with replacement, lr cosine-decayed to 0); and the mean
+    squared error before and after on each head ({"pbr"|"material"}_{"start"|"end"})."""
+    with torch.no_grad():
+        want = heads(candidate, candidate.triplane, points)
+    fitted = Triplane.from_planes(shipped.triplane.planes.detach().clone())
+    fitted.requires_grad_(True)
+    opt = torch.optim.Adam(fitted.parameters(), lr=lr)
+    g = torch.Generator(device=points.device).manual_seed(seed)
+
+    def errors() -> dict[str, float]:
+        with torch.no_grad():
+            d = (heads(shipped, fitted, points) - want) ** 2
+            return {"pbr": float(d[:, :5].mean()), "material": float(d[:, 5:].mean())}
+
+    start = errors()
+    for step in range(steps):
+        for group in opt.param_groups:
+            group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * step / steps))
+        idx = torch.randint(0, points.shape[0], (batch,), generator=g, device=points.device)
+        loss = ((heads(shipped, fitted, points[idx]) - want[idx]) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    end = errors()
+    fitted.requires_grad_(False)
+    return fitted, {**{f"{k}_start": v for k, v in start.items()}, **{f"{k}_end": v for k, v in end.items()}}
+
+
+def write_restated(shipped_work: Path, out_work: Path, planes: torch.Tensor, note: dict[str, Any]) -> None:
+    """out_work's validate, prepare_views and lmrm stages: shipped_work's, with the lmrm prediction's planes
+    replaced by `planes` and its record naming what was done."""
+    from safetensors.torch import load_file, save_file
+
+    for stage in ("validate", "prepare_views", "lmrm"):
+        shutil.copytree(stage_dir(shipped_work, stage), stage_dir(out_work, stage), dirs_exist_ok=True)
+    folder = stage_dir(out_work, "lmrm")
+    tensors = load_file(str(folder / "prediction.safetensors"))
+    tensors["triplane.planes"] = planes.detach().cpu().contiguous()
+    save_file(tensors, str(folder / "prediction.safetensors"))
+    record = json.loads((folder / "prediction.json").read_text())
+    record["restated"] = note
+    write_json_atomic(folder / "prediction.json", record)
+
+
+def main() -> int:
+    parser = argument_parser(__doc__)
+    parser.add_argument("data", type=Path, help="the benchmark split")
+    parser.add_argument("--shipped", type=Path, required=True, help="evaluation folder run with the shipped LMRM")
+    parser.add_argument("--candidate", type=Path, required=True, help="evaluation folder run with the candidate")
+    parser.add_argument("--out", type=Path, required=True, help="the new evaluation folder")
+    parser.add_argument("--objects", default="all", help="as `neumatex eval --objects`")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    fits: dict[str, dict[str, float]] = {}
+    for obj in select_objects(args.data, args.objects):
+        ship_work, cand_work = args.shipped / "work" / obj, args.candidate / "work" / obj
+        if not (stage_dir(ship_work, "lmrm") / "done.json").is_file() or \
+                not (stage_dir(cand_work, "lmrm") / "done.json").is_file():
+            print(f"{obj}: skipped, the lmrm stage has not run in both {args.shipped} and {args.candidate}")
+            continue
+        if (stage_dir(args.out / "work" / obj, "lmrm") / "done.json").is_file():
+            print(f"{obj}: already restated in {args.out}")
+            continue
+        shipped, _ = load_prediction(ship_work)
+        candidate, cand_record = load_prediction(cand_work)
+        points, _ = load_capture(args.data / obj).load_mesh().sample_surface(POINTS, seed=0)
+        planes, err = restate(candidate, shipped, points)
+        write_restated(ship_work, args.out / "work" / obj, planes.planes,
+                       {"candidate": cand_record.get("lmrm", {}), "fit": err})
+        fits[obj] = err
+        print(f"{obj}: mean squared error, PBR head {err['pbr_start']:.4f} -> {err['pbr_end']:.5f}, "
+              f"material decoder {err['material_start']:.4f} -> {err['material_end']:.5f}")
+    if fits:
+        path = write_result("lmrm_restate", {"shipped": str(args.shipped), "candidate": str(args.candidate),
+                                             "out": str(args.out), "fits": fits})
+        print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
