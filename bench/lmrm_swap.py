@@ -11,6 +11,7 @@ candidate - shipped, paired, and the default - PBR under each LMRM, which is wha
 
 Each folder is an evaluation's --out (its results/<object>/<variant>.json are read; their work/ is not needed).
 Only objects with every variant in both folders count, so a half-finished run is compared on what it has.
+`--variants ours` pairs other variants the two folders hold (e.g. the paper's recipe, `--tables table1`).
 `--keep DIR` copies both folders' eval.json and results/ to DIR/<folder name>/, small enough to commit, so that a
 later session (on a fresh machine) can add objects and compare all of them. Appends one JSON line to
 bench/results/lmrm_swap.jsonl.
@@ -21,6 +22,7 @@ from __future__ import annotations
 import json
 import shutil
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,19 +39,19 @@ PBR = "pbr"
 METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor", "psnr_latents")
 
 
-def complete_objects(folder: Path) -> set[str]:
-    """Objects of an evaluation folder with a result for every variant of the default table."""
+def complete_objects(folder: Path, variants: Sequence[str] = VARIANTS) -> set[str]:
+    """Objects of an evaluation folder with a result for every one of `variants` (default: the default table's)."""
     results = folder / "results"
     if not results.is_dir():
         return set()
-    return {d.name for d in results.iterdir() if all((d / f"{v}.json").is_file() for v in VARIANTS)}
+    return {d.name for d in results.iterdir() if all((d / f"{v}.json").is_file() for v in variants)}
 
 
-def joined(shipped: Path, candidate: Path) -> tuple[Results, list[str]]:
-    """Both folders' results in one table, the candidate's variants named `<variant>@candidate`, on the objects
+def joined(shipped: Path, candidate: Path, variants: Sequence[str] = VARIANTS) -> tuple[Results, list[str]]:
+    """Both folders' results of `variants` in one table, the candidate's named `<variant>@candidate`, on the objects
     complete in both."""
-    objects = sorted(complete_objects(shipped) & complete_objects(candidate))
-    canon = {v: v for v in VARIANTS}
+    objects = sorted(complete_objects(shipped, variants) & complete_objects(candidate, variants))
+    canon = {v: v for v in variants}
     res = load_results(shipped, objects, canon)
     for v, rows in load_results(candidate, objects, canon).items():
         if v in canon:
@@ -57,11 +59,11 @@ def joined(shipped: Path, candidate: Path) -> tuple[Results, list[str]]:
     return res, objects
 
 
-def swap_figures(res: Results) -> dict[str, Any]:
-    """{variant: {metric: {shipped, candidate, diff, se, n, ahead}}} (candidate - shipped, paired) and
-    {"default_minus_pbr": {metric: {shipped: [mean, se, n], candidate: [mean, se, n]}}}."""
+def swap_figures(res: Results, variants: Sequence[str] = VARIANTS) -> dict[str, Any]:
+    """{variant: {metric: {shipped, candidate, diff, se, n, ahead}}} (candidate - shipped, paired) and, where
+    `variants` hold the default and PBR, {"default_minus_pbr": {metric: {shipped: [mean, se, n], candidate: ...}}}."""
     out: dict[str, Any] = {}
-    for v in VARIANTS:
+    for v in variants:
         for m in METRICS:
             pairs = paired_values(res, f"{v}@candidate", v, m)
             if not pairs:
@@ -71,6 +73,8 @@ def swap_figures(res: Results) -> dict[str, Any]:
                 "shipped": sum(res[v][m][o] for o in pairs) / n,
                 "candidate": sum(res[f"{v}@candidate"][m][o] for o in pairs) / n,
                 "diff": diff, "se": se, "n": n, "ahead": sum(d > 0 for d in pairs.values())}
+    if DEFAULT_VARIANT not in variants or PBR not in variants:
+        return out
     gaps: dict[str, Any] = {}
     for m in METRICS[:2]:
         gaps[m] = {side: list(paired_difference(res, f"{DEFAULT_VARIANT}{suffix}", f"{PBR}{suffix}", m))
@@ -94,20 +98,24 @@ def main() -> int:
     parser.add_argument("candidate", type=Path, help="the evaluation run with the candidate (--lmrm-weights)")
     parser.add_argument("--keep", type=Path, default=None, help="copy both folders' results here")
     parser.add_argument("--no-record", action="store_true", help="print only; append no JSON line")
+    parser.add_argument("--variants", default=",".join(VARIANTS),
+                        help="comma-separated eval variants to pair (default: the default table's)")
     args = parser.parse_args()
-    res, objects = joined(args.shipped, args.candidate)
+    variants = [v for v in args.variants.split(",") if v]
+    res, objects = joined(args.shipped, args.candidate, variants)
     if not objects:
-        print(f"no object has all of {', '.join(VARIANTS)} in both {args.shipped} and {args.candidate}")
+        print(f"no object has all of {', '.join(variants)} in both {args.shipped} and {args.candidate}")
         return 1
-    figures = swap_figures(res)
+    figures = swap_figures(res, variants)
     print(f"candidate - shipped LMRM, paired over {len(objects)} objects ({', '.join(o[-2:] for o in objects)}); "
           "mean +- standard error (objects ahead)")
-    for v in VARIANTS:
+    for v in variants:
         for m, f in figures.get(v, {}).items():
             print(f"  {v:26s} {m:22s} {f['shipped']:6.2f} -> {f['candidate']:6.2f}  "
                   f"{f['diff']:+.2f} +- {f['se']:.2f} ({f['ahead']}/{f['n']})")
-    print(f"the default ({DEFAULT_VARIANT}) - PBR under each LMRM")
-    for m, sides in figures["default_minus_pbr"].items():
+    if "default_minus_pbr" in figures:
+        print(f"the default ({DEFAULT_VARIANT}) - PBR under each LMRM")
+    for m, sides in figures.get("default_minus_pbr", {}).items():
         print(f"  {m:22s} " + "  ".join(f"{side} {d:+.2f} +- {se:.2f} (n={n})" for side, (d, se, n) in sides.items()))
     if args.keep is not None:
         for folder in (args.shipped, args.candidate):
@@ -117,7 +125,8 @@ def main() -> int:
         config = json.loads(candidate_cfg.read_text()).get("config", {}) if candidate_cfg.is_file() else {}
         weights = config.get("lmrm_weights", "")
         path = write_result("lmrm_swap", {"shipped": str(args.shipped), "candidate": str(args.candidate),
-                                          "lmrm_weights": weights, "objects": objects, "figures": figures})
+                                          "lmrm_weights": weights, "variants": variants, "objects": objects,
+                                          "figures": figures})
         print(f"wrote {path}")
     return 0
 

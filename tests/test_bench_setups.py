@@ -238,6 +238,13 @@ def test_the_lmrm_swap_benchmark_pairs_each_variant_per_object_where_both_runs_f
     assert figures[default]["psnr_basecolor"]["diff"] == pytest.approx(0.75)
     gap = figures["default_minus_pbr"]["psnr_pathtrace_clean"]
     assert gap["shipped"][0] == pytest.approx(4.0) and gap["candidate"][0] == pytest.approx(5.75)
+    # another variant of both folders (the paper's recipe), paired alone: no default - PBR without the two
+    for folder, value in ((shipped, 20.0), (candidate, 21.5)):
+        (folder / "results" / "test-000001" / "ours.json").write_text(json.dumps({"psnr_basecolor": value}))
+    res, objects = swap.joined(shipped, candidate, ["ours"])
+    ours = swap.swap_figures(res, ["ours"])
+    assert objects == ["test-000001"] and set(ours) == {"ours"}
+    assert ours["ours"]["psnr_basecolor"]["diff"] == pytest.approx(1.5)
     swap.keep(candidate, tmp_path / "kept")
     assert (tmp_path / "kept" / "cand" / "results" / "test-000001" / f"{default}.json").is_file()
 
