@@ -32,7 +32,6 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from common import argument_parser, write_result  # noqa: E402
 
@@ -42,9 +41,7 @@ from neumatex_core.eval.suite import select_objects  # noqa: E402
 from neumatex_core.fields.triplane import Triplane  # noqa: E402
 from neumatex_core.lmrm.inference import LMRMPrediction  # noqa: E402
 from neumatex_core.pipeline import load_prediction, stage_dir  # noqa: E402
-
-POINTS = 1 << 15  # area samples the planes are fitted on (as the default's start fit, tto/pbr_start.py)
-STEPS, LR, BATCH = 1500, 0.05, 8192  # the start fit's schedule (TTOConfig.pbr_fit_*)
+from neumatex_core.tto.pbr_start import FIT_BATCH, FIT_LR, FIT_POINTS, FIT_STEPS  # noqa: E402
 
 
 def heads(pred: LMRMPrediction, triplane: Triplane, points: torch.Tensor) -> torch.Tensor:
@@ -56,11 +53,13 @@ def heads(pred: LMRMPrediction, triplane: Triplane, points: torch.Tensor) -> tor
     return torch.cat([base, rough.reshape(-1, 1), metal.reshape(-1, 1), rho_d, (latent + 1) / 2], dim=-1)
 
 
-def restate(candidate: LMRMPrediction, shipped: LMRMPrediction, points: torch.Tensor, steps: int = STEPS,
-            lr: float = LR, batch: int = BATCH, seed: int = 0) -> tuple[Triplane, dict[str, float]]:
+def restate(candidate: LMRMPrediction, shipped: LMRMPrediction, points: torch.Tensor,
+            steps: int = FIT_STEPS, lr: float = FIT_LR, batch: int = FIT_BATCH,
+            seed: int = 0) -> tuple[Triplane, dict[str, float]]:
     """A triplane through which `shipped`'s decoders give `candidate`'s heads at points [P, 3] (Adam on the planes,
-    from `shipped`'s, `steps` steps of `batch` points drawn with replacement, lr cosine-decayed to 0); and the mean
-    squared error before and after on each head ({"pbr"|"material"}_{"start"|"end"})."""
+    from `shipped`'s, `steps` steps of `batch` points drawn with replacement, lr cosine-decayed to 0; by default the
+    schedule of the default's start fit, tto/pbr_start.py); and the mean squared error before and after on each head
+    ({"pbr"|"material"}_{"start"|"end"})."""
     with torch.no_grad():
         want = heads(candidate, candidate.triplane, points)
     fitted = Triplane.from_planes(shipped.triplane.planes.detach().clone())
@@ -125,7 +124,7 @@ def main() -> int:
             continue
         shipped, _ = load_prediction(ship_work)
         candidate, cand_record = load_prediction(cand_work)
-        points, _ = load_capture(args.data / obj).load_mesh().sample_surface(POINTS, seed=0)
+        points, _ = load_capture(args.data / obj).load_mesh().sample_surface(FIT_POINTS, seed=0)
         planes, err = restate(candidate, shipped, points)
         write_restated(ship_work, args.out / "work" / obj, planes.planes,
                        {"candidate": cand_record.get("lmrm", {}), "fit": err})
