@@ -249,6 +249,35 @@ def test_the_lmrm_swap_benchmark_pairs_each_variant_per_object_where_both_runs_f
     assert (tmp_path / "kept" / "cand" / "results" / "test-000001" / f"{default}.json").is_file()
 
 
+def test_the_lmrm_start_benchmark_pairs_each_variant_with_the_default_across_an_lmrms_folders(tmp_path: Path) -> None:
+    # bench/lmrm_start.py: each variant - the default per metric, paired per object, the objects of several folders
+    # of one LMRM joined (an object in two folders counted once, from the first); the LMRM's start weights kept.
+    import json
+
+    bench = bench_module("lmrm_start")
+    default, variant = bench.DEFAULT_VARIANT, bench.VARIANTS[0]
+    first, second = tmp_path / "a", tmp_path / "b"
+    # per object: (default clean PathTrace, variant clean PathTrace); None: not run
+    scores = {first: {"test-000000": (35.0, 34.0), "test-000001": (31.0, None)},
+              second: {"test-000002": (30.0, 32.0), "test-000000": (99.0, 99.0)}}
+    for folder, rows in scores.items():
+        for obj, values in rows.items():
+            for name, value in zip((default, variant), values, strict=True):
+                if value is None:
+                    continue
+                f = folder / "results" / obj / f"{name}.json"
+                f.parent.mkdir(parents=True, exist_ok=True)
+                f.write_text(json.dumps({"psnr_pathtrace_clean": value, "psnr_basecolor": value - 10.0,
+                                         "choice_lmrm_start_weight_rho": 0.5}))
+    res, weights = bench.joined([first, second], [variant])
+    figures = bench.figures(res, [variant])
+    d = figures[variant]["psnr_pathtrace_clean"]
+    assert (d["default"], d["variant"], d["n"], d["ahead"]) == (32.5, 33.0, 2, 1)
+    assert d["diff"] == pytest.approx(0.5) and d["se"] == pytest.approx(1.5)  # diffs -1, +2: std 2.12 / sqrt 2
+    assert figures[variant]["psnr_basecolor"]["diff"] == pytest.approx(0.5)
+    assert weights[variant] == {"test-000000": 0.5, "test-000002": 0.5}
+
+
 def test_the_lmrm_restate_benchmark_fits_planes_through_the_shipped_decoders_to_the_candidates_heads() -> None:
     # bench/lmrm_restate.py: a triplane read by one model's decoders is fitted so that they give, at surface points,
     # what another model's decoders give through its own triplane (design note 95); the decoders are not touched.

@@ -89,6 +89,10 @@ ROW_NAMES = {
     "pbr_start_anchor_01_spp32": "neural from the PBR solution, anchored (0.1), 256 pixels x 32 spp per step",
     "pbr_lin_decorrelated": "PBR baseline, decorrelated photometric loss in linear radiance",
     "pbr_start_anchor_01_lin_decorrelated": "neural from the PBR solution, anchored (0.1), decorrelated in linear",
+    "default_lmrm_start": "the default, its neural start blended with the LMRM's prediction by their precisions",
+    "default_lmrm_start_anchor": "the same, anchored (0.1) where the LMRM made the start",
+    "default_lmrm_start_anchor_2": "the same, anchored (2) where the LMRM made the start",
+    "default_lmrm_start_full": "the default, its neural start nearly all the LMRM's prediction, anchored (0.1) to it",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -119,6 +123,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                     "psnr_relight_clean", "tto_minutes"),
     "decorrelated": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
                      "psnr_relight_clean", "tto_minutes"),
+    "lmrm_start": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                   "psnr_relight_clean", "tto_minutes"),
 }
 TABLE_TITLES = {
     "table1": "Table 1: PBR baseline vs neural material",
@@ -134,6 +140,7 @@ TABLE_TITLES = {
     "spp32": "Samples per pixel in TTO: 256 pixels x 32 spp (the photos' own count) against 1024 x 8 (issue 14)",
     "decorrelated": "The photometric loss without the render's variance: independent sample errors (issue 14)",
     "consistency": "Points that start alike change alike: the consistency term instead of the anchor (issue 14)",
+    "lmrm_start": "The default's neural start blended with the LMRM's prediction by their precisions (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")  # the figure grid's columns; the default's join them where it was run
 FIGURE_OPTIONAL = (DEFAULT_VARIANT, "t3a_no_tto")

@@ -64,7 +64,7 @@ RANGES: dict[str, Range] = {
     "random_std": Range(0, 100), "checkpoint_every": Range(0, 100_000), "seed": Range(0, 2**31 - 1),
     "cache_pixels": Range(1, 1 << 20), "cache_directions": Range(1, 4096), "cache_every": Range(1, 100_000),
     "pbr_steps": Range(1, 100_000), "pbr_fit_steps": Range(1, 100_000), "pbr_fit_lr": Range(0, 100, lo_open=True),
-    "pbr_fit_batch": Range(1, 1 << 24), "pbr_bsdf_fit_steps": Range(0, 100_000),
+    "pbr_fit_batch": Range(1, 1 << 24), "lmrm_start_var": Range(0, 1e6), "pbr_bsdf_fit_steps": Range(0, 100_000),
     "neural_lr_scale": Range(0, 100, lo_open=True), "average_tail": Range(0, 0.99),
     "settle_fraction": Range(0, 1), "settle_spp": Range(1, 4096), "settle_lr": Range(0, 100, lo_open=True),
     "settle_lr_final": Range(0, 1, lo_open=True),
@@ -145,6 +145,13 @@ class TTOConfig:
     # init "pbr": before the planes are fitted, the cells of the object whose photos a material family's prototype
     # reproduces better under direct light than the PBR start take that prototype's fit (tto/appearance_start.py)
     appearance_start: bool = False
+    # init "pbr": > 0 blends the start with the LMRM's prediction channel by channel by their precisions, this being
+    # the PBR start's error variance (G-buffer units squared) and exp(log_var) the LMRM's; the latent in the default
+    # basis only (tto/lmrm_start.py; 0: the PBR start alone; docs/design-notes.md item 96)
+    lmrm_start_var: float = 0.0
+    # with lmrm_start_var, reg "start": the anchor to the start weighs each channel by the LMRM's share of it
+    # (`lmrm_share`) instead of 1, so lambda_reg holds what the LMRM put in and leaves the PBR start's part free
+    lmrm_start_anchor: bool = False
     # init "pbr": the neural phase's learning rate is lr x neural_lr_scale (it starts at a fitted solution, not at
     # the LMRM's guess that lr was tuned for)
     neural_lr_scale: float = 1.0
@@ -385,6 +392,9 @@ class TTOConfig:
         if (self.consistency_rho_value > 0 or self.consistency_latent_value > 0) and self.lambda_consistency <= 0:
             raise ValueError("TTO consistency_rho_value and consistency_latent_value weigh parts of the consistency "
                              f"term: they need lambda_consistency > 0, got {self.lambda_consistency}")
+        if self.lmrm_start_anchor and self.lmrm_start_var <= 0:
+            raise ValueError("TTO lmrm_start_anchor weighs the anchor to the start by the LMRM's share of it: it needs "
+                             f"lmrm_start_var > 0, got {self.lmrm_start_var}")
         if self.reg == "start" and self.init != "pbr":
             raise ValueError(f"TTO reg='start' anchors to the PBR start: it needs init 'pbr', got {self.init!r}")
         if self.basis and (self.init == "lmrm" or self.reg not in ("none", "start")):

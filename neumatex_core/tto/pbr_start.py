@@ -42,6 +42,7 @@ from neumatex_core.tto.appearance_start import StartAt, appearance_start
 from neumatex_core.tto.baked_light import light_following
 from neumatex_core.tto.config import UNIFORM_RHO_VALUE, TTOConfig
 from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.lmrm_start import lmrm_blend, lmrm_share
 from neumatex_core.tto.loss import Anchor, photometric_loss
 from neumatex_core.tto.optimise import Progress, Truth, TTOResult, build_problem, optimise
 from neumatex_core.tto.params import NeuralTriplane, Parametrisation, PBRTriplane
@@ -289,7 +290,10 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
         points = points.to(problem.params.tensor.device)
         with torch.no_grad():
             target = problem.params.gbuffer(points, None)
-        problem.anchor = Anchor(points, None if uv is None else uv.to(points.device), target, torch.ones_like(target))
+        weight = torch.ones_like(target)
+        if config.lmrm_start_anchor:  # held where the start is the LMRM's (tto/lmrm_start.py)
+            weight = lmrm_share(prediction, basis, points, config.lmrm_start_var, target.shape[1] - 3)
+        problem.anchor = Anchor(points, None if uv is None else uv.to(points.device), target, weight)
     earlier: list[dict[str, float]] = []
     if resume is not None:  # after the anchor: that stays the start's G-buffer
         assert isinstance(resume.params, NeuralTriplane)
@@ -398,7 +402,7 @@ def alternative_wins(pbr_psnr: float, own: float, other: float | None, margin: f
 class FittedStart:
     """`fit_start`'s result: the neural triplane `params` fitted to the PBR solution, on `mesh` (None: the
     caller's), with G-buffer error `mse` (`fit_start_to_pbr`) and `record` (config.appearance_start's,
-    `appearance_start`; else empty)."""
+    `appearance_start`, and config.lmrm_start_var's, `lmrm_blend`; else empty)."""
 
     params: NeuralTriplane
     mesh: Mesh | None
@@ -411,19 +415,24 @@ def fit_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Environme
               anchor_available: bool) -> FittedStart:
     """The PBR solution `first` expressed in `basis`: the neural phase's problem (`_neural_phase`: the same planes to
     start from, the same fit), its planes fitted by `fit_start_to_pbr`; with config.appearance_start, the cells
-    that a family prototype reproduces better on `photos` start there (`appearance_start`)."""
+    that a family prototype reproduces better on `photos` start there (`appearance_start`); with
+    config.lmrm_start_var, the start is then blended with the LMRM's prediction (`lmrm_blend`)."""
     neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
                             select_basis="", alternative_basis="")
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     record: dict[str, float] = {}
     adjust: Adjust | None = None
-    if config.appearance_start:
+    if config.appearance_start or config.lmrm_start_var > 0:
         def adjust(points: torch.Tensor, rho: torch.Tensor, latent: torch.Tensor,
                    start_at: StartAt) -> tuple[torch.Tensor, torch.Tensor]:
-            rho, latent, made = appearance_start(basis, points, rho, latent, start_at, mesh, envmap, photos, tonemap,
-                                                 config.max_bounces, config.seed)  # fmt: skip
-            record.update(made)
+            if config.appearance_start:
+                rho, latent, made = appearance_start(basis, points, rho, latent, start_at, mesh, envmap, photos,
+                                                     tonemap, config.max_bounces, config.seed)  # fmt: skip
+                record.update(made)
+            if config.lmrm_start_var > 0:
+                rho, latent, made = lmrm_blend(prediction, basis, points, rho, latent, config.lmrm_start_var)
+                record.update(made)
             return rho, latent
     mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, config.seed, config.pbr_fit_steps,
                            config.pbr_bsdf_fit_steps, config.pbr_fit_lr, config.pbr_fit_batch, adjust)
