@@ -372,7 +372,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # -0.91 +- 0.52, BaseColor -0.66 +- 1.06 / -0.70 +- 0.59: no gain, off (design note 96)
     "default_lmrm_start": {**DEFAULT_81, "lmrm_start_var": 0.06},
     # ... and anchored to that start (lambda_reg 0.1, the anchor's weight before the consistency term, design note 34)
-    # where the LMRM made it: each channel's weight is the LMRM's share of the start (TTOConfig.lmrm_start_anchor)
+    # where the LMRM made it: each channel's weight is the LMRM's share of the start (TTOConfig.lmrm_start_anchor).
+    # Neither this nor lambda_reg 2 (below) gains resolvably with either LMRM on objects 0-7 (design note 96)
     "default_lmrm_start_anchor": {**DEFAULT_81, "lmrm_start_var": 0.06, "lmrm_start_anchor": True, "lambda_reg": 0.1},
     # ... and at lambda_reg 2: where the LMRM is sure (variance 0.01, share 0.86) about the paper's anchor weight
     # there (lambda 0.02 x exp(-log_var) = 2), which holds the LMRM's latents (design note 95)
@@ -380,7 +381,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # ... the start nearly all the LMRM's (the PBR start's variance taken as 1, so the LMRM's share is 1 / (1 + its
     # variance)), anchored (0.1) to it: the paper's start and an anchor to it on the default's schedule. With the
     # restated candidate, against the default on objects 0-7: BaseColor +2.36 +- 1.41, Latents +3.58 +- 1.31,
-    # PathTrace clean -0.12 +- 0.99 (not resolved); with the shipped LMRM SHIPPED_FULL_SHORT (design note 96)
+    # PathTrace clean -0.12 +- 0.99 (not resolved); with the shipped LMRM it gains nothing (PathTrace clean -0.39 +-
+    # 0.42, BaseColor -1.07 +- 1.40, Latents +0.46 +- 1.00; design note 96)
     "default_lmrm_start_full": {**DEFAULT_81, "lmrm_start_var": 1.0, "lmrm_start_anchor": True, "lambda_reg": 0.1},
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
     # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
