@@ -36,11 +36,12 @@ VARIANTS = [v for v in TABLES["lmrm_start"] if v not in ("pbr", DEFAULT_VARIANT)
 WEIGHTS = ("choice_lmrm_start_weight_rho", "choice_lmrm_start_weight_latent")  # the configured basis's start's
 
 
-def joined(folders: list[Path], variants: list[str]) -> tuple[Results, dict[str, dict[str, float]]]:
+def joined(folders: list[Path], variants: list[str]) -> tuple[Results, dict[str, dict[str, list[float]]]]:
     """The folders' results of the default and `variants` as one table (an object from the first folder that has
-    it), and each variant's recorded start weights {variant: {object: mean LMRM weight on rho_d}}."""
+    it), and each variant's recorded start weights {variant: {object: [the LMRM's mean weight on rho_d, on the
+    latent]}} (NaN where a result has none)."""
     res: Results = {}
-    weights: dict[str, dict[str, float]] = {v: {} for v in variants}
+    weights: dict[str, dict[str, list[float]]] = {v: {} for v in variants}
     seen: set[str] = set()
     for folder in folders:
         objects = sorted(complete_objects(folder, [DEFAULT_VARIANT]) - seen)
@@ -52,7 +53,8 @@ def joined(folders: list[Path], variants: list[str]) -> tuple[Results, dict[str,
             for obj in objects:
                 f = folder / "results" / obj / f"{v}.json"
                 if f.is_file():
-                    weights[v][obj] = float(json.loads(f.read_text()).get(WEIGHTS[0], float("nan")))
+                    rec = json.loads(f.read_text())
+                    weights[v][obj] = [float(rec.get(key, float("nan"))) for key in WEIGHTS]
     return res, weights
 
 
@@ -88,12 +90,13 @@ def main() -> int:
         figs = figures(res, VARIANTS)
         print(f"{name}: variant - the default ({DEFAULT_VARIANT}), paired; mean +- standard error (objects ahead)")
         for v in VARIANTS:
-            w = [x for x in weights[v].values() if x == x]
-            print(f"  {v} (LMRM's mean weight on rho_d in the start: {sum(w) / max(len(w), 1):.2f})")
+            shares = [[w[k] for w in weights[v].values() if w[k] == w[k]] for k in range(len(WEIGHTS))]
+            rho, latent = (sum(x) / max(len(x), 1) for x in shares)
+            print(f"  {v} (the LMRM's mean weight in the start: rho_d {rho:.2f}, latent {latent:.2f})")
             for m, f in figs.get(v, {}).items():
                 print(f"    {m:22s} {f['default']:6.2f} -> {f['variant']:6.2f}  {f['diff']:+.2f} +- {f['se']:.2f} "
                       f"({f['ahead']}/{f['n']})")
-        record[name] = {"folders": [str(f) for f in folders], "figures": figs, "weight_rho": weights}
+        record[name] = {"folders": [str(f) for f in folders], "figures": figs, "weights": weights}
         if args.keep is not None:
             for folder in folders:
                 shutil.copytree(folder / "results", args.keep / name / "results", dirs_exist_ok=True)

@@ -268,14 +268,14 @@ def test_the_lmrm_start_benchmark_pairs_each_variant_with_the_default_across_an_
                 f = folder / "results" / obj / f"{name}.json"
                 f.parent.mkdir(parents=True, exist_ok=True)
                 f.write_text(json.dumps({"psnr_pathtrace_clean": value, "psnr_basecolor": value - 10.0,
-                                         "choice_lmrm_start_weight_rho": 0.5}))
+                                         "choice_lmrm_start_weight_rho": 0.5, "choice_lmrm_start_weight_latent": 0.25}))
     res, weights = bench.joined([first, second], [variant])
     figures = bench.figures(res, [variant])
     d = figures[variant]["psnr_pathtrace_clean"]
     assert (d["default"], d["variant"], d["n"], d["ahead"]) == (32.5, 33.0, 2, 1)
     assert d["diff"] == pytest.approx(0.5) and d["se"] == pytest.approx(1.5)  # diffs -1, +2: std 2.12 / sqrt 2
     assert figures[variant]["psnr_basecolor"]["diff"] == pytest.approx(0.5)
-    assert weights[variant] == {"test-000000": 0.5, "test-000002": 0.5}
+    assert weights[variant] == {"test-000000": [0.5, 0.25], "test-000002": [0.5, 0.25]}
 
 
 def test_the_lmrm_restate_benchmark_fits_planes_through_the_shipped_decoders_to_the_candidates_heads() -> None:

@@ -1,6 +1,7 @@
 """The neural start blended with the LMRM's prediction (tto/lmrm_start.py): each channel the precision-weighted mean
-of the PBR start and the LMRM, the latent only in the basis whose latents the LMRM predicts; and `fit_start` fits
-the planes to that blend (TTOConfig.lmrm_start_var)."""
+of the PBR start and the LMRM, the latent only in the basis whose latents the LMRM predicts; `fit_start` fits the
+planes to that blend (TTOConfig.lmrm_start_var); and the anchor to the start weighs each channel by the LMRM's share
+of it (TTOConfig.lmrm_start_anchor)."""
 
 from __future__ import annotations
 
