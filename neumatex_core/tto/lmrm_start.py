@@ -33,12 +33,16 @@ def lmrm_share(prediction: LMRMPrediction, basis: NeuralBasis, points: torch.Ten
     default basis, whose latents the LMRM predicts."""
     with torch.no_grad():
         features = prediction.triplane.features(points.to(prediction.triplane.planes.device))
-        log_var = prediction.uncertainty_decoder(features)
-        var = torch.exp(log_var.clamp_min(LOG_VAR_MIN)).to(points.device)
-        share = torch.zeros(points.shape[0], 3 + latent_dim, device=points.device)
-        share[:, :3] = pbr_var / (pbr_var + var[:, :3])
-        if basis.basis_id == load_basis(str(points.device)).basis_id and latent_dim == var.shape[1] - 3:
-            share[:, 3:] = pbr_var / (pbr_var + var[:, 3:])
+        return _share(prediction.uncertainty_decoder(features), basis, pbr_var, latent_dim).to(points.device)
+
+
+def _share(log_var: torch.Tensor, basis: NeuralBasis, pbr_var: float, latent_dim: int) -> torch.Tensor:
+    """`lmrm_share` from the LMRM's predicted log-variances [P, 3 + its latent size]."""
+    var = torch.exp(log_var.clamp_min(LOG_VAR_MIN))
+    share = torch.zeros(var.shape[0], 3 + latent_dim, device=var.device)
+    share[:, :3] = pbr_var / (pbr_var + var[:, :3])
+    if basis.basis_id == load_basis(str(var.device)).basis_id and latent_dim == var.shape[1] - 3:
+        share[:, 3:] = pbr_var / (pbr_var + var[:, 3:])
     return share
 
 
@@ -47,9 +51,9 @@ def lmrm_blend(prediction: LMRMPrediction, basis: NeuralBasis, points: torch.Ten
     """The start's (rho_d [P, 3], latent [P, D]) at points [P, 3] blended with the LMRM's prediction there (module
     docstring; the weights `lmrm_share`). The record: the mean weight of the LMRM on the base colour
     (lmrm_start_weight_rho) and on the latent (lmrm_start_weight_latent; 0 where it is not blended)."""
-    share = lmrm_share(prediction, basis, points, pbr_var, latent.shape[1]).to(rho.device)
-    with torch.no_grad():
-        lmrm_rho, lmrm_latent, _ = prediction.gbuffers(points.to(prediction.triplane.planes.device))
+    with torch.no_grad():  # one pass of the LMRM: its values and their variances
+        lmrm_rho, lmrm_latent, log_var = prediction.gbuffers(points.to(prediction.triplane.planes.device))
+        share = _share(log_var, basis, pbr_var, latent.shape[1]).to(rho.device)
         rho = rho + share[:, :3] * (lmrm_rho.to(rho.device) - rho)
         if latent.shape[1] == lmrm_latent.shape[1]:  # else the share is 0 (another basis's latent space)
             latent = latent + share[:, 3:] * (lmrm_latent.to(latent.device) - latent)
