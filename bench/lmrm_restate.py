@@ -23,7 +23,6 @@ Appends one JSON line per run to bench/results/lmrm_restate.jsonl: per object th
 from __future__ import annotations
 
 import json
-import math
 import shutil
 import sys
 from pathlib import Path
@@ -38,52 +37,9 @@ from common import argument_parser, write_result  # noqa: E402
 from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.eval.suite import select_objects  # noqa: E402
-from neumatex_core.fields.triplane import Triplane  # noqa: E402
-from neumatex_core.lmrm.inference import LMRMPrediction  # noqa: E402
+from neumatex_core.lmrm.restate import restate  # noqa: E402
 from neumatex_core.pipeline import load_prediction, stage_dir  # noqa: E402
 from neumatex_core.tto.pbr_start import FIT_BATCH, FIT_LR, FIT_POINTS, FIT_STEPS  # noqa: E402
-
-
-def heads(pred: LMRMPrediction, triplane: Triplane, points: torch.Tensor) -> torch.Tensor:
-    """[N, 8 + D] what the PBR head and the material decoder give at points [N, 3] through `triplane`: PBR base colour,
-    roughness, metallic, then rho_d and (latent + 1) / 2 (the metric's scale)."""
-    feats = triplane.features(points)
-    base, rough, metal = pred.pbr_decoder(feats)
-    rho_d, latent = pred.material_decoder(feats)
-    return torch.cat([base, rough.reshape(-1, 1), metal.reshape(-1, 1), rho_d, (latent + 1) / 2], dim=-1)
-
-
-def restate(candidate: LMRMPrediction, shipped: LMRMPrediction, points: torch.Tensor,
-            steps: int = FIT_STEPS, lr: float = FIT_LR, batch: int = FIT_BATCH,
-            seed: int = 0) -> tuple[Triplane, dict[str, float]]:
-    """A triplane through which `shipped`'s decoders give `candidate`'s heads at points [P, 3] (Adam on the planes,
-    from `shipped`'s, `steps` steps of `batch` points drawn with replacement, lr cosine-decayed to 0; by default the
-    schedule of the default's start fit, tto/pbr_start.py); and the mean squared error before and after on each head
-    ({"pbr"|"material"}_{"start"|"end"})."""
-    with torch.no_grad():
-        want = heads(candidate, candidate.triplane, points)
-    fitted = Triplane.from_planes(shipped.triplane.planes.detach().clone())
-    fitted.requires_grad_(True)
-    opt = torch.optim.Adam(fitted.parameters(), lr=lr)
-    g = torch.Generator(device=points.device).manual_seed(seed)
-
-    def errors() -> dict[str, float]:
-        with torch.no_grad():
-            d = (heads(shipped, fitted, points) - want) ** 2
-            return {"pbr": float(d[:, :5].mean()), "material": float(d[:, 5:].mean())}
-
-    start = errors()
-    for step in range(steps):
-        for group in opt.param_groups:
-            group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * step / steps))
-        idx = torch.randint(0, points.shape[0], (batch,), generator=g, device=points.device)
-        loss = ((heads(shipped, fitted, points[idx]) - want[idx]) ** 2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-    end = errors()
-    fitted.requires_grad_(False)
-    return fitted, {**{f"{k}_start": v for k, v in start.items()}, **{f"{k}_end": v for k, v in end.items()}}
 
 
 def write_restated(shipped_work: Path, out_work: Path, planes: torch.Tensor, note: dict[str, Any]) -> None:
@@ -125,8 +81,8 @@ def main() -> int:
         shipped, _ = load_prediction(ship_work)
         candidate, cand_record = load_prediction(cand_work)
         points, _ = load_capture(args.data / obj).load_mesh().sample_surface(FIT_POINTS, seed=0)
-        planes, err = restate(candidate, shipped, points)
-        write_restated(ship_work, args.out / "work" / obj, planes.planes,
+        restated, err = restate(candidate, shipped, points, steps=FIT_STEPS, lr=FIT_LR, batch=FIT_BATCH)
+        write_restated(ship_work, args.out / "work" / obj, restated.triplane.planes,
                        {"candidate": cand_record.get("lmrm", {}), "fit": err})
         fits[obj] = err
         print(f"{obj}: mean squared error, PBR head {err['pbr_start']:.4f} -> {err['pbr_end']:.5f}, "

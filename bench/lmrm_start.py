@@ -27,9 +27,9 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import argument_parser, write_result  # noqa: E402
-from lmrm_swap import METRICS, complete_objects  # noqa: E402
+from lmrm_swap import METRICS, complete_objects, joined_folders  # noqa: E402
 
-from neumatex_core.eval.suite import Results, load_results, paired_difference, paired_values  # noqa: E402
+from neumatex_core.eval.suite import Results, paired_difference, paired_values  # noqa: E402
 from neumatex_core.eval.variants import DEFAULT_VARIANT, TABLES  # noqa: E402
 
 VARIANTS = [v for v in TABLES["lmrm_start"] if v not in ("pbr", DEFAULT_VARIANT)]
@@ -40,15 +40,12 @@ def joined(folders: list[Path], variants: list[str]) -> tuple[Results, dict[str,
     """The folders' results of the default and `variants` as one table (an object from the first folder that has
     it), and each variant's recorded start weights {variant: {object: [the LMRM's mean weight on rho_d, on the
     latent]}} (NaN where a result has none)."""
-    res: Results = {}
+    res = joined_folders(folders, {v: v for v in [DEFAULT_VARIANT, *variants]}, [DEFAULT_VARIANT])
     weights: dict[str, dict[str, list[float]]] = {v: {} for v in variants}
     seen: set[str] = set()
     for folder in folders:
         objects = sorted(complete_objects(folder, [DEFAULT_VARIANT]) - seen)
         seen |= set(objects)
-        for name, rows in load_results(folder, objects, {v: v for v in [DEFAULT_VARIANT, *variants]}).items():
-            for m, values in rows.items():
-                res.setdefault(name, {}).setdefault(m, {}).update(values)
         for v in variants:
             for obj in objects:
                 f = folder / "results" / obj / f"{v}.json"

@@ -46,6 +46,20 @@ def complete_objects(folder: Path, variants: Sequence[str] = VARIANTS) -> set[st
     return {d.name for d in results.iterdir() if all((d / f"{v}.json").is_file() for v in variants)}
 
 
+def joined_folders(folders: Sequence[Path], canon: dict[str, str], required: Sequence[str] | None = None) -> Results:
+    """The results of `canon`'s runs ({name: stored variant}) in several evaluation folders as one table, each object
+    taken from the first folder that has a result for every `required` variant (default: all of `canon`'s)."""
+    res: Results = {}
+    seen: set[str] = set()
+    for folder in folders:
+        objects = sorted(complete_objects(folder, list(canon.values()) if required is None else required) - seen)
+        seen |= set(objects)
+        for name, rows in load_results(folder, objects, canon).items():
+            for m, values in rows.items():
+                res.setdefault(name, {}).setdefault(m, {}).update(values)
+    return res
+
+
 def joined(shipped: Path, candidate: Path, variants: Sequence[str] = VARIANTS) -> tuple[Results, list[str]]:
     """Both folders' results of `variants` in one table, the candidate's named `<variant>@candidate`, on the objects
     complete in both."""

@@ -62,6 +62,7 @@ DONE = "done.json"
 ASSET_DIR = "asset"
 PRESET_TOLERANCE = 1e-3  # max |c2w difference| for a frame to count as a preset view
 RANDOM_TRIPLANE = (16, 48)  # channels, resolution of the random triplane when no LMRM is available
+SHIPPED_LMRM = "shipped"  # ExtractConfig.lmrm_readout's name for the shipped checkpoint
 # What every extract preset runs after the PBR TTO (ExtractConfig.init "pbr"): the neural TTO from its start, the
 # PBR solution in the basis, where points that start alike must change alike (the consistency term, weight 0.1;
 # no pull towards the start's values). It lets the neural phase add a coat or a sheen to a whole material and keeps
@@ -164,8 +165,10 @@ class ExtractConfig:
     "choose" (the default: both tried, held-out photos decide, in basis v6 too; 1500 TTO steps, not 1100, on cpu;
     "textured" without the PBR start), "textured" (several materials or textures) or "uniform" (one material all
     over; needs init "pbr");
-    lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the shipped one; device: "auto", "cpu" or
-    "cuda"; seed: every random draw; name: asset name (default: the capture folder's)."""
+    lmrm_weights: an LMRM .safetensors (its .json beside it) instead of the shipped one; lmrm_readout: an LMRM
+    .safetensors (or "shipped": the shipped checkpoint) whose decoders read the prediction, restated per object
+    through them (lmrm/restate.py; the fit follows `tto`'s start-fit schedule); "": the LMRM's own decoders;
+    device: "auto", "cpu" or "cuda"; seed: every random draw; name: asset name (default: the capture folder's)."""
 
     preset_name: str = "cpu"
     tto: TTOConfig = field(default_factory=TTOConfig)
@@ -180,6 +183,7 @@ class ExtractConfig:
     eval_spp: int = 16
     variation: Literal["textured", "uniform", "choose"] = "choose"
     lmrm_weights: str = ""
+    lmrm_readout: str = ""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     seed: int = 0
     name: str = ""
@@ -425,14 +429,32 @@ def _stage_prepare_views(capture: Path, work: Path, config: ExtractConfig,
             "source": source}
 
 
-def _load_lmrm(config: ExtractConfig, device: torch.device) -> LMRM:
+def _load_lmrm(weights: str, device: torch.device) -> LMRM:
+    """The LMRM checkpoint at `weights` (.safetensors, its .json beside it), or the shipped one for "" or
+    "shipped"."""
     from neumatex_core.lmrm import load_lmrm
     from neumatex_core.lmrm.inference import load_lmrm_from
 
-    if config.lmrm_weights:
-        weights = Path(config.lmrm_weights)
-        return load_lmrm_from(weights, weights.with_suffix(".json"), device)
-    return load_lmrm(device)
+    if weights in ("", SHIPPED_LMRM):
+        return load_lmrm(device)
+    return load_lmrm_from(Path(weights), Path(weights).with_suffix(".json"), device)
+
+
+def _restated(pred: LMRMPrediction, readout: LMRM, norm: _Normalised, views: dict[str, torch.Tensor],
+              config: ExtractConfig) -> tuple[LMRMPrediction, dict[str, Any]]:
+    """`pred` read through `readout`'s decoders (lmrm/restate.py), fitted at the start fit's area samples and
+    schedule; and what the record keeps of it: the readout's hash, each head's squared error before and after."""
+    from neumatex_core.lmrm.restate import restate
+    from neumatex_core.tto.pbr_start import FIT_POINTS
+
+    base = readout.predict(views["display"].float(), preset_views(int(views["display"].shape[1])), norm.mesh,
+                           norm.envmap)  # fmt: skip
+    points, _ = norm.mesh.sample_surface(FIT_POINTS, seed=config.seed)
+    tto, t0 = config.tto, time.perf_counter()
+    restated, errors = restate(pred, base, points, steps=tto.pbr_fit_steps, lr=tto.pbr_fit_lr,
+                               batch=tto.pbr_fit_batch, seed=config.seed)  # fmt: skip
+    return restated, {"readout": {k: readout.record.get(k) for k in ("sha256", "basis_id")}, "fit": errors,
+                      "seconds": time.perf_counter() - t0}
 
 
 def _random_prediction(seed: int) -> LMRMPrediction:
@@ -457,7 +479,8 @@ def _stage_lmrm(capture: Path, work: Path, config: ExtractConfig, progress: Prog
     device = config.torch_device()
     _emit(progress, "lmrm", 0.0, "loading the LMRM")
     try:
-        lmrm: LMRM | None = _load_lmrm(config, device)
+        lmrm: LMRM | None = _load_lmrm(config.lmrm_weights, device)
+        readout = _load_lmrm(config.lmrm_readout, device) if config.lmrm_readout else None
     except LMRMError as exc:
         if config.init in ("lmrm", "pbr"):
             raise PipelineError(f"LMRM initialisation needs a trained LMRM checkpoint, which is not available: {exc}. "
@@ -471,8 +494,11 @@ def _stage_lmrm(capture: Path, work: Path, config: ExtractConfig, progress: Prog
             t0 = time.perf_counter()
             pred = lmrm.predict(views["display"].float(), preset_views(resolution), norm.mesh, norm.envmap)
             seconds_predict = time.perf_counter() - t0
+            info: dict[str, Any] = {k: lmrm.record.get(k) for k in ("sha256", "basis_id") if k in lmrm.record}
+            if readout is not None:
+                _emit(progress, "lmrm", 0.3, "restating the prediction through the readout's decoders")
+                pred, info["restated"] = _restated(pred, readout, norm, views, config)
         source, trained = "lmrm", True
-        info = {k: lmrm.record.get(k) for k in ("sha256", "basis_id") if k in lmrm.record}
     else:
         pred = _random_prediction(config.seed)
         source, trained, info, seconds_predict = "random (no trained LMRM)", False, {}, 0.0

@@ -24,7 +24,7 @@ from neumatex_core.pipeline import PRESETS, RANGES, ExtractConfig
 from neumatex_core.tto.config import RANGES as TTO_RANGES
 from neumatex_core.tto.config import TTOConfig
 
-NOT_OVERRIDABLE = {"preset_name", "lmrm_weights", "tto"}  # lmrm_weights would read a server path; tto: nested
+NOT_OVERRIDABLE = {"preset_name", "lmrm_weights", "lmrm_readout", "tto"}  # server paths; tto: nested
 TTO_FROM_TOP = {"init", "seed"}  # the top-level init and seed set these (ExtractConfig.tto_config)
 NAME_MAX = 200
 STRICT: dict[Any, Any] = {int: StrictInt, bool: StrictBool, str: StrictStr}

@@ -278,32 +278,36 @@ def test_the_lmrm_start_benchmark_pairs_each_variant_with_the_default_across_an_
     assert weights[variant] == {"test-000000": [0.5, 0.25], "test-000002": [0.5, 0.25]}
 
 
-def test_the_lmrm_restate_benchmark_fits_planes_through_the_shipped_decoders_to_the_candidates_heads() -> None:
-    # bench/lmrm_restate.py: a triplane read by one model's decoders is fitted so that they give, at surface points,
-    # what another model's decoders give through its own triplane (design note 95); the decoders are not touched.
-    from neumatex_core.fields.decoders import PBRDecoder, UncertaintyDecoder
-    from neumatex_core.lmrm.inference import LMRMPrediction
+def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sides(tmp_path: Path) -> None:
+    # bench/lmrm_ship.py: the new extraction's default (default_lmrm_start_full) - today's default, its PBR baseline -
+    # today's, and each side's default - its own PBR baseline, paired per object over the objects both sides have.
+    import json
 
-    restate = bench_module("lmrm_restate")
+    bench = bench_module("lmrm_ship")
 
-    torch.manual_seed(1)
-    decoders = (MaterialDecoder(12, 16), UncertaintyDecoder(12, 16), PBRDecoder(12, 16))
-    with torch.no_grad():  # outputs that vary over the features (at their initial scale they sit near 0.5)
-        for d in decoders:
-            for w in d.parameters():
-                w.mul_(4.0)
-    # the candidate: other planes read by the same decoders, so its heads are reachable exactly
-    shipped = LMRMPrediction(Triplane(channels=4, resolution=8, init_std=0.5), *decoders)
-    candidate = LMRMPrediction(Triplane(channels=4, resolution=8, init_std=0.5), *decoders)
-    before = {k: v.clone() for k, v in shipped.pbr_decoder.state_dict().items()}
-    planes_before = shipped.triplane.planes.detach().clone()
-    points = torch.rand(2048, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
-    fitted, err = restate.restate(candidate, shipped, points, steps=400, lr=0.05, batch=512)
-    assert err["pbr_start"] > 0.01 and err["material_start"] > 0.01
-    assert err["pbr_end"] < err["pbr_start"] / 20 and err["material_end"] < err["material_start"] / 20
-    with torch.no_grad():
-        got, want = restate.heads(shipped, fitted, points), restate.heads(candidate, candidate.triplane, points)
-    assert got.shape == (2048, 14)  # PBR base colour, roughness, metallic, rho_d, latent on the [0, 1] scale
-    assert float(((got - want) ** 2).mean()) == pytest.approx((5 * err["pbr_end"] + 9 * err["material_end"]) / 14)
-    assert all(torch.equal(before[k], v) for k, v in shipped.pbr_decoder.state_dict().items())
-    assert torch.equal(shipped.triplane.planes, planes_before)  # the fit starts from a copy of the shipped planes
+    def write(folder: Path, obj: str, variant: str, clean: float) -> None:
+        f = folder / "results" / obj / f"{variant}.json"
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_text(json.dumps({"psnr_pathtrace_clean": clean, "psnr_relight_clean": clean - 5.0}))
+
+    new_a, new_b, product = tmp_path / "a", tmp_path / "b", tmp_path / "product"
+    for obj, (new, new_pbr) in {"test-000000": (34.0, 30.0), "test-000001": (33.0, 28.0)}.items():
+        write(new_a, obj, bench.NEW, new)
+        write(new_a, obj, "pbr", new_pbr)
+    write(new_b, "test-000002", bench.NEW, 31.0)
+    write(new_b, "test-000002", "pbr", 29.0)
+    write(new_b, "test-000001", bench.NEW, 99.0)  # also in the first folder, which gives it
+    write(new_b, "test-000001", "pbr", 99.0)
+    write(new_b, "test-000003", bench.NEW, 99.0)  # no PBR baseline: not counted
+    for obj, (default, pbr) in {"test-000000": (35.0, 30.0), "test-000001": (31.0, 27.0),
+                                "test-000002": (32.0, 29.0), "test-000003": (30.0, 20.0)}.items():
+        write(product, obj, bench.DEFAULT_VARIANT, default)
+        write(product, obj, "pbr", pbr)
+    figs = bench.figures(bench.joined([new_a, new_b], [product]))
+    d = figs["default"]["psnr_pathtrace_clean"]  # new - product: -1, +2, -1
+    assert (d["n"], d["ahead"], d["new"], d["product"]) == (3, 1, pytest.approx(98 / 3), pytest.approx(98 / 3))
+    assert d["diff"] == pytest.approx(0.0) and d["se"] == pytest.approx(1.0)  # std 1.732 / sqrt 3
+    assert figs["pbr"]["psnr_pathtrace_clean"]["diff"] == pytest.approx(1 / 3)  # 0, +1, 0
+    gap = figs["default_minus_pbr"]["psnr_relight_clean"]  # 4, 5, 2 against 5, 4, 3
+    assert gap["new"]["diff"] == pytest.approx(11 / 3) and gap["product"]["diff"] == pytest.approx(4.0)
+    assert gap["product"]["n"] == 3  # test-000003, which the new side lacks, is left out of today's too

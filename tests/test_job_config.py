@@ -28,7 +28,8 @@ def test_schema_bounds_are_the_core_ranges() -> None:
             assert bounds["exclusiveMinimum" if allowed.lo_open else "minimum"] == allowed.lo, name
     assert schema["properties"]["device"]["anyOf"][0]["enum"] == ["auto", "cpu", "cuda"]
     assert schema["properties"]["variation"]["anyOf"][0]["enum"] == ["textured", "uniform", "choose"]
-    assert "lmrm_weights" not in schema["properties"] and "init" not in schema["$defs"]["TTOOverrides"]["properties"]
+    assert "lmrm_weights" not in schema["properties"] and "lmrm_readout" not in schema["properties"]
+    assert "init" not in schema["$defs"]["TTOOverrides"]["properties"]
 
 
 @pytest.mark.parametrize("overrides, words", [

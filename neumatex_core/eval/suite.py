@@ -125,6 +125,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                      "psnr_relight_clean", "tto_minutes"),
     "lmrm_start": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
                    "psnr_relight_clean", "tto_minutes"),
+    "lmrm_start_full": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                        "psnr_relight_clean", "tto_minutes"),
 }
 TABLE_TITLES = {
     "table1": "Table 1: PBR baseline vs neural material",
@@ -141,6 +143,7 @@ TABLE_TITLES = {
     "decorrelated": "The photometric loss without the render's variance: independent sample errors (issue 14)",
     "consistency": "Points that start alike change alike: the consistency term instead of the anchor (issue 14)",
     "lmrm_start": "The default's neural start blended with the LMRM's prediction by their precisions (issue 14)",
+    "lmrm_start_full": "The default's neural start taken from the LMRM and anchored to it, against PBR (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")  # the figure grid's columns; the default's join them where it was run
 FIGURE_OPTIONAL = (DEFAULT_VARIANT, "t3a_no_tto")
@@ -166,6 +169,8 @@ class EvalConfig:
     threads: int = option(1, "torch CPU threads per process")
     device: Literal["auto", "cpu", "cuda"] = option("auto", "torch device")
     lmrm_weights: str = option("", "an LMRM .safetensors (its .json beside it) instead of the shipped one")
+    lmrm_readout: str = option("", "an LMRM .safetensors, or 'shipped', whose decoders read the LMRM's prediction "
+                                   "(restated per object; '': the LMRM's own)")
     doc: str = option("docs/results.md", "the results page to write ('': none); figures go beside it")
     figures: int = option(4, "objects shown in the figure grid")
     record: str = option("bench/results/eval.jsonl", "where a JSON line with the headline numbers of the written "
@@ -275,7 +280,8 @@ def run_eval(cfg: EvalConfig, progress: Callable[[int, int, str], None] | None =
     canon = distinct_variants(tables)
     runs = list(dict.fromkeys(canon.values())) + [TRUTH]
     relight = [int(v) for v in cfg.relight_views.split(",") if v.strip()]
-    config = ExtractConfig.preset(cfg.preset, device=cfg.device, lmrm_weights=cfg.lmrm_weights)
+    config = ExtractConfig.preset(cfg.preset, device=cfg.device, lmrm_weights=cfg.lmrm_weights,
+                                 lmrm_readout=cfg.lmrm_readout)
     # Every variant sets its own field, init, reg and material (eval/variants.py); the base keeps the paper's ("ours")
     # whatever the extraction's defaults, so stored results stay comparable when those change.
     config = replace(config, init="lmrm", tto=replace(config.tto, reg="uncertainty"))

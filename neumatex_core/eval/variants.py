@@ -510,6 +510,8 @@ TABLES: dict[str, list[str]] = {
                     "pbr_start_consistent_1", "pbr_start_alike_1"],
     "lmrm_start": ["pbr", DEFAULT_VARIANT, "default_lmrm_start", "default_lmrm_start_anchor",
                    "default_lmrm_start_anchor_2", "default_lmrm_start_full"],
+    # the one start that gained (design note 96), against the PBR baseline, for objects beyond the first 8
+    "lmrm_start_full": ["pbr", "default_lmrm_start_full"],
     "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",
                      "pbr_start_anchor_01_decorrelated", "pbr_start_anchor_01_lin_decorrelated"],
 }

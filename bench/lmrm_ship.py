@@ -1,0 +1,109 @@
+"""Would shipping a candidate LMRM, read through the shipped decoders, with the default's neural start taken from it
+beat today's product? (docs/design-notes.md items 96 and 97.) The new extraction is eval variant
+`default_lmrm_start_full` run with `--lmrm-weights` the candidate and `--lmrm-readout shipped` (the prediction
+restated per object, neumatex_core/lmrm/restate.py); today's is the default with the shipped LMRM, whose 40 objects'
+results the results page was made from (kept in bench/results/eval-clean). Paired per object:
+
+    .venv/bin/neumatex eval data/benchmark-test --tables lmrm_start_full --relight-views 0,8,16 --objects IDS \\
+        --lmrm-weights bench/candidates/NAME/lmrm.safetensors --lmrm-readout shipped --out runs/ship/NAME \\
+        --doc '' --record ''
+    .venv/bin/python bench/lmrm_ship.py runs/ship/NAME[+FOLDER...] [--product bench/results/eval-clean] \\
+        [--keep bench/results/lmrm-swap/NAME]
+
+FOLDER+FOLDER...: evaluation folders of the new extraction, their objects joined (the first folder that has an
+object gives it). It prints, mean +- standard error (objects ahead): the new default - today's on each metric; the
+new PBR baseline (from the restated prediction's PBR head) - today's; and under each LMRM the default - its PBR
+baseline on PathTrace and Relight clean (issue 14 asks >= +3 and >= +2 dB). `--keep DIR` copies the new folders'
+results/ to DIR/results/ (small; a later session adds objects there). Appends one JSON line to
+bench/results/lmrm_ship.jsonl.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import argument_parser, write_result  # noqa: E402
+from lmrm_swap import METRICS, PBR, joined_folders  # noqa: E402
+
+from neumatex_core.eval.suite import Results, paired_difference, paired_values  # noqa: E402
+from neumatex_core.eval.variants import DEFAULT_VARIANT  # noqa: E402
+
+NEW = "default_lmrm_start_full"
+PRODUCT = Path(__file__).resolve().parent / "results" / "eval-clean"
+# the table's row names: the new extraction and its PBR baseline, today's and its
+ROWS = {"new": NEW, "new_pbr": PBR}
+PRODUCT_ROWS = {"product": DEFAULT_VARIANT, "product_pbr": PBR}
+
+
+def joined(new: list[Path], product: list[Path]) -> Results:
+    """One table of the new folders' `ROWS` and the product folders' `PRODUCT_ROWS` (each object from the first
+    folder of its side that has both of that side's rows)."""
+    return {**joined_folders(new, ROWS), **joined_folders(product, PRODUCT_ROWS)}
+
+
+def pair(res: Results, a: str, b: str, metric: str) -> dict[str, float]:
+    """{a, b: their means over the paired objects, diff, se, n, ahead} for a - b on `metric`."""
+    pairs = paired_values(res, a, b, metric)
+    diff, se, n = paired_difference(res, a, b, metric)
+    return {a: sum(res[a][metric][o] for o in pairs) / n, b: sum(res[b][metric][o] for o in pairs) / n,
+            "diff": diff, "se": se, "n": n, "ahead": sum(d > 0 for d in pairs.values())}
+
+
+def figures(res: Results) -> dict[str, Any]:
+    """{"default"|"pbr": {metric: pair(new - product)}, "default_minus_pbr": {metric: {side: pair(...)}}} over the
+    objects both sides have."""
+    out: dict[str, Any] = {"default": {}, "pbr": {}, "default_minus_pbr": {}}
+    for m in METRICS:
+        if paired_values(res, "new", "product", m):
+            out["default"][m] = pair(res, "new", "product", m)
+        if paired_values(res, "new_pbr", "product_pbr", m):
+            out["pbr"][m] = pair(res, "new_pbr", "product_pbr", m)
+    both = set(paired_values(res, "new", "product", METRICS[0]))
+    for m in METRICS[:2]:  # PathTrace and Relight clean, on the objects both sides have
+        sub = {row: {mm: {o: v for o, v in vals.items() if o in both} for mm, vals in res[row].items()}
+               for row in ("new", "new_pbr", "product", "product_pbr")}  # fmt: skip
+        if paired_values(sub, "new", "new_pbr", m):
+            out["default_minus_pbr"][m] = {"new": pair(sub, "new", "new_pbr", m),
+                                           "product": pair(sub, "product", "product_pbr", m)}
+    return out
+
+
+def main() -> int:
+    parser = argument_parser(__doc__)
+    parser.add_argument("new", help="FOLDER[+FOLDER...]: evaluation folders of the new extraction")
+    parser.add_argument("--product", default=str(PRODUCT), help="FOLDER[+FOLDER...]: today's product's results")
+    parser.add_argument("--keep", type=Path, default=None, help="copy the new folders' results to KEEP/results")
+    parser.add_argument("--no-record", action="store_true", help="print only; append no JSON line")
+    args = parser.parse_args()
+    new = [Path(p) for p in args.new.split("+") if p]
+    product = [Path(p) for p in args.product.split("+") if p]
+    figs = figures(joined(new, product))
+    if not figs["default"]:
+        print(f"no object has {NEW} and {PBR} in {args.new} and {DEFAULT_VARIANT} and {PBR} in {args.product}")
+        return 1
+    n = figs["default"][METRICS[0]]["n"] if METRICS[0] in figs["default"] else 0
+    print(f"the new extraction ({NEW}, restated candidate) - today's ({DEFAULT_VARIANT}, shipped LMRM), paired over "
+          f"{n} objects; mean +- standard error (objects ahead)")
+    for side in ("default", "pbr"):
+        for m, f in figs[side].items():
+            a, b = ("new", "product") if side == "default" else ("new_pbr", "product_pbr")
+            print(f"  {side:8s} {m:22s} {f[b]:6.2f} -> {f[a]:6.2f}  {f['diff']:+.2f} +- {f['se']:.2f} "
+                  f"({f['ahead']}/{f['n']})")
+    for m, sides in figs["default_minus_pbr"].items():
+        print(f"  the default - its PBR baseline, {m}: " + "  ".join(
+            f"{side} {f['diff']:+.2f} +- {f['se']:.2f}" for side, f in sides.items()))
+    if args.keep is not None:
+        for folder in new:
+            shutil.copytree(folder / "results", args.keep / "results", dirs_exist_ok=True)
+    if not args.no_record:
+        print(f"wrote {write_result('lmrm_ship', {'new': args.new, 'product': args.product, 'figures': figs})}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
