@@ -99,7 +99,8 @@ def main() -> int:
             f"{side} {f['diff']:+.2f} +- {f['se']:.2f}" for side, f in sides.items()))
     if args.keep is not None:
         for folder in new:
-            shutil.copytree(folder / "results", args.keep / "results", dirs_exist_ok=True)
+            if (folder / "results").resolve() != (args.keep / "results").resolve():  # a kept folder is read too
+                shutil.copytree(folder / "results", args.keep / "results", dirs_exist_ok=True)
     if not args.no_record:
         print(f"wrote {write_result('lmrm_ship', {'new': args.new, 'product': args.product, 'figures': figs})}")
     return 0

@@ -311,3 +311,11 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
     gap = figs["default_minus_pbr"]["psnr_relight_clean"]  # 4, 5, 2 against 5, 4, 3
     assert gap["new"]["diff"] == pytest.approx(11 / 3) and gap["product"]["diff"] == pytest.approx(4.0)
     assert gap["product"]["n"] == 3  # test-000003, which the new side lacks, is left out of today's too
+    # --keep into a folder that is itself read (the kept results joined with a new run's) copies the others' objects
+    argv = sys.argv
+    try:
+        sys.argv = ["lmrm_ship.py", f"{new_a}+{new_b}", "--product", str(product), "--keep", str(new_a), "--no-record"]
+        assert bench.main() == 0
+    finally:
+        sys.argv = argv
+    assert (new_a / "results" / "test-000002" / f"{bench.NEW}.json").is_file()
