@@ -13,13 +13,17 @@ results the results page was made from (kept in bench/results/eval-clean). Paire
 FOLDER+FOLDER...: evaluation folders of the new extraction, their objects joined (the first folder that has an
 object gives it). It prints, mean +- standard error (objects ahead): the new default - today's on each metric; the
 new PBR baseline (from the restated prediction's PBR head) - today's; and under each LMRM the default - its PBR
-baseline on PathTrace and Relight clean (issue 14 asks >= +3 and >= +2 dB). `--keep DIR` copies the new folders'
+baseline on PathTrace and Relight clean (issue 14 asks >= +3 and >= +2 dB); and a choice between the two per object
+on held-out photos, simulated from what each run recorded (the best held-out PSNR among its TTO's candidates: the
+new one taken where it is higher), against today's. `--keep DIR` copies the new folders'
 results/ to DIR/results/ (small; a later session adds objects there). Appends one JSON line to
 bench/results/lmrm_ship.jsonl.
 """
 
 from __future__ import annotations
 
+import json
+import math
 import shutil
 import sys
 from pathlib import Path
@@ -38,6 +42,37 @@ PRODUCT = Path(__file__).resolve().parent / "results" / "eval-clean"
 # the table's row names: the new extraction and its PBR baseline, today's and its
 ROWS = {"new": NEW, "new_pbr": PBR}
 PRODUCT_ROWS = {"product": DEFAULT_VARIANT, "product_pbr": PBR}
+ROWS_PAIRED = {"default": ("new", "product"), "pbr": ("new_pbr", "product_pbr"), "chosen": ("chosen", "product")}
+# the held-out photos' PSNR of each candidate a default's TTO compared (configured basis and v6, textured and uniform)
+HELD_OUT = ("choice_validation_psnr_textured", "choice_validation_psnr_uniform", "choice_select_basis_psnr_textured",
+            "choice_select_basis_psnr_uniform")
+
+
+def held_out(folders: list[Path], variant: str) -> dict[str, float]:
+    """object -> the best held-out-photo PSNR among the candidates of `variant`'s TTO (what its choices compared),
+    from the first folder that has the object."""
+    out: dict[str, float] = {}
+    for folder in folders:
+        for f in sorted((folder / "results").glob(f"*/{variant}.json")):
+            rec = json.loads(f.read_text())
+            values = [float(rec[k]) for k in HELD_OUT if isinstance(rec.get(k), (int, float)) and math.isfinite(rec[k])]
+            if values:
+                out.setdefault(f.parent.name, max(values))
+    return out
+
+
+def chosen(res: Results, new_held: dict[str, float], product_held: dict[str, float]) -> Results:
+    """`res` with a row "chosen": per object the new default's results where its held-out score is higher, else
+    today's (objects both sides scored)."""
+    rows: dict[str, dict[str, float]] = {}
+    for m in res["product"]:
+        rows[m] = {}
+        for obj, value in res["product"][m].items():
+            if obj in new_held and obj in product_held and obj in res["new"][METRICS[0]]:
+                take_new = new_held[obj] > product_held[obj]
+                if not take_new or obj in res["new"][m]:
+                    rows[m][obj] = res["new"][m][obj] if take_new else value
+    return {**res, "chosen": rows}
 
 
 def joined(new: list[Path], product: list[Path]) -> Results:
@@ -55,12 +90,14 @@ def pair(res: Results, a: str, b: str, metric: str) -> dict[str, float]:
 
 
 def figures(res: Results) -> dict[str, Any]:
-    """{"default"|"pbr": {metric: pair(new - product)}, "default_minus_pbr": {metric: {side: pair(...)}}} over the
-    objects both sides have."""
-    out: dict[str, Any] = {"default": {}, "pbr": {}, "default_minus_pbr": {}}
+    """{"default"|"pbr"|"chosen": {metric: pair(new - product)}, "default_minus_pbr": {metric: {side: pair(...)}}}
+    over the objects both sides have ("chosen": where `res` has that row, `chosen`)."""
+    out: dict[str, Any] = {"default": {}, "pbr": {}, "chosen": {}, "default_minus_pbr": {}}
     for m in METRICS:
         if paired_values(res, "new", "product", m):
             out["default"][m] = pair(res, "new", "product", m)
+        if paired_values(res, "chosen", "product", m):
+            out["chosen"][m] = pair(res, "chosen", "product", m)
         if paired_values(res, "new_pbr", "product_pbr", m):
             out["pbr"][m] = pair(res, "new_pbr", "product_pbr", m)
     both = set(paired_values(res, "new", "product", METRICS[0]))
@@ -82,16 +119,17 @@ def main() -> int:
     args = parser.parse_args()
     new = [Path(p) for p in args.new.split("+") if p]
     product = [Path(p) for p in args.product.split("+") if p]
-    figs = figures(joined(new, product))
+    res = chosen(joined(new, product), held_out(new, NEW), held_out(product, DEFAULT_VARIANT))
+    figs = figures(res)
     if not figs["default"]:
         print(f"no object has {NEW} and {PBR} in {args.new} and {DEFAULT_VARIANT} and {PBR} in {args.product}")
         return 1
     n = figs["default"][METRICS[0]]["n"] if METRICS[0] in figs["default"] else 0
     print(f"the new extraction ({NEW}, restated candidate) - today's ({DEFAULT_VARIANT}, shipped LMRM), paired over "
           f"{n} objects; mean +- standard error (objects ahead)")
-    for side in ("default", "pbr"):
+    for side in ("default", "pbr", "chosen"):
         for m, f in figs[side].items():
-            a, b = ("new", "product") if side == "default" else ("new_pbr", "product_pbr")
+            a, b = ROWS_PAIRED[side]
             print(f"  {side:8s} {m:22s} {f[b]:6.2f} -> {f[a]:6.2f}  {f['diff']:+.2f} +- {f['se']:.2f} "
                   f"({f['ahead']}/{f['n']})")
     for m, sides in figs["default_minus_pbr"].items():

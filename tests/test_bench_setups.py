@@ -285,10 +285,16 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
 
     bench = bench_module("lmrm_ship")
 
+    held = {bench.NEW: {"test-000000": 25.0, "test-000001": 20.0, "test-000002": 22.0},  # best held-out PSNR
+            bench.DEFAULT_VARIANT: {"test-000000": 24.0, "test-000001": 21.0, "test-000002": 22.0}}
+
     def write(folder: Path, obj: str, variant: str, clean: float) -> None:
         f = folder / "results" / obj / f"{variant}.json"
         f.parent.mkdir(parents=True, exist_ok=True)
-        f.write_text(json.dumps({"psnr_pathtrace_clean": clean, "psnr_relight_clean": clean - 5.0}))
+        rec = {"psnr_pathtrace_clean": clean, "psnr_relight_clean": clean - 5.0}
+        if obj in held.get(variant, {}):  # the textured candidate's, below the uniform one's
+            rec |= {"choice_validation_psnr_uniform": held[variant][obj], "choice_validation_psnr_textured": 1.0}
+        f.write_text(json.dumps(rec))
 
     new_a, new_b, product = tmp_path / "a", tmp_path / "b", tmp_path / "product"
     for obj, (new, new_pbr) in {"test-000000": (34.0, 30.0), "test-000001": (33.0, 28.0)}.items():
@@ -303,7 +309,9 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
                                 "test-000002": (32.0, 29.0), "test-000003": (30.0, 20.0)}.items():
         write(product, obj, bench.DEFAULT_VARIANT, default)
         write(product, obj, "pbr", pbr)
-    figs = bench.figures(bench.joined([new_a, new_b], [product]))
+    res = bench.joined([new_a, new_b], [product])
+    res = bench.chosen(res, bench.held_out([new_a, new_b], bench.NEW), bench.held_out([product], bench.DEFAULT_VARIANT))
+    figs = bench.figures(res)
     d = figs["default"]["psnr_pathtrace_clean"]  # new - product: -1, +2, -1
     assert (d["n"], d["ahead"], d["new"], d["product"]) == (3, 1, pytest.approx(98 / 3), pytest.approx(98 / 3))
     assert d["diff"] == pytest.approx(0.0) and d["se"] == pytest.approx(1.0)  # std 1.732 / sqrt 3
@@ -311,6 +319,9 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
     gap = figs["default_minus_pbr"]["psnr_relight_clean"]  # 4, 5, 2 against 5, 4, 3
     assert gap["new"]["diff"] == pytest.approx(11 / 3) and gap["product"]["diff"] == pytest.approx(4.0)
     assert gap["product"]["n"] == 3  # test-000003, which the new side lacks, is left out of today's too
+    # chosen on held-out photos: the new default where it scored higher (test-000000), else today's (a tie too)
+    c = figs["chosen"]["psnr_pathtrace_clean"]
+    assert (c["n"], c["chosen"], c["diff"]) == (3, pytest.approx(97 / 3), pytest.approx(-1 / 3))
     # --keep into a folder that is itself read (the kept results joined with a new run's) copies the others' objects
     argv = sys.argv
     try:
