@@ -64,6 +64,8 @@ def held_out(folders: list[Path], variant: str) -> dict[str, float]:
 def chosen(res: Results, new_held: dict[str, float], product_held: dict[str, float]) -> Results:
     """`res` with a row "chosen": per object the new default's results where its held-out score is higher, else
     today's (objects both sides scored)."""
+    if "new" not in res or "product" not in res:  # a side with no complete object
+        return res
     rows: dict[str, dict[str, float]] = {}
     for m in res["product"]:
         rows[m] = {}
