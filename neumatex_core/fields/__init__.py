@@ -7,7 +7,8 @@ triplane features into material G-buffers (docs/architecture.md sections 1, 5).
 - `TriplaneMaterialField` (neural_field.py): triplane + material decoder + neural basis -> NeuralMaterial;
 - `UVTextureField`, `PBRTextureField` (uv_textures.py): per-hit UV lookups of [H, W, 3 + K] / [H, W, 5]
   textures (K the basis's latent size);
-- `fit_triplane` (fit.py): distil a known per-point material into a triplane (test objects).
+- `fit_triplane` (fit.py): distil a known per-point material into a triplane (test objects); `fit_on_points`: the
+  Adam loop (random batches of surface points, cosine-decayed rate) of the fits to values known at points.
 """
 
 from neumatex_core.fields.decoders import MaterialDecoder, PBRDecoder, UncertaintyDecoder, module_id

@@ -1,4 +1,5 @@
-"""Distilling a known per-point material into a triplane field (Adam on the G-buffer MSE).
+"""Distilling a known per-point material into a triplane field (Adam on the G-buffer MSE), and `fit_on_points`, the
+Adam loop of the fits to values known at surface points (tto/pbr_start.py `fit_planes`, lmrm/restate.py).
 
 Used to make test and benchmark objects whose triplane encodes a known material (until the LMRM predicts
 triplanes), and usable as an initialisation. `target(points [N, 3]) -> (rho_d [N, 3], latent [N, K])` (K: the
@@ -8,7 +9,8 @@ samples).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Iterable
 
 import torch
 
@@ -18,6 +20,22 @@ from neumatex_core.fields.triplane import Triplane
 from neumatex_core.materials.neural_basis import NeuralBasis
 
 Target = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+def fit_on_points(parameters: Iterable[torch.Tensor], batch_loss: Callable[[torch.Tensor], torch.Tensor], n: int,
+                  steps: int, lr: float, batch: int, seed: int, device: torch.device) -> None:
+    """`steps` Adam steps on `parameters` (in place), each on `batch_loss(idx)` for `batch` indices [batch] into n
+    points drawn with replacement (a generator seeded `seed` on `device`), at `lr` cosine-decayed to 0."""
+    opt = torch.optim.Adam(list(parameters), lr=lr)
+    g = torch.Generator(device=device).manual_seed(seed)
+    for step in range(steps):
+        for group in opt.param_groups:
+            group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * step / steps))
+        idx = torch.randint(0, n, (batch,), generator=g, device=device)
+        loss = batch_loss(idx)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
 
 
 def fit_triplane(points: torch.Tensor, target: Target, basis: NeuralBasis, channels: int = 8, resolution: int = 32,

@@ -15,10 +15,9 @@ frozen decoders, its uncertainty decoder among them.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
+from neumatex_core.fields.fit import fit_on_points
 from neumatex_core.fields.triplane import Triplane
 from neumatex_core.lmrm.inference import LMRMPrediction
 
@@ -47,23 +46,17 @@ def restate(prediction: LMRMPrediction, readout: LMRMPrediction, points: torch.T
         want = heads(prediction, prediction.triplane, points)
     fitted = Triplane.from_planes(readout.triplane.planes.detach().clone())
     fitted.requires_grad_(True)
-    opt = torch.optim.Adam(fitted.parameters(), lr=lr)
-    g = torch.Generator(device=points.device).manual_seed(seed)
 
     def errors() -> dict[str, float]:
         with torch.no_grad():
             d = (heads(readout, fitted, points) - want) ** 2
             return {"pbr": float(d[:, :5].mean()), "material": float(d[:, 5:].mean())}
 
+    def batch_error(idx: torch.Tensor) -> torch.Tensor:
+        return ((heads(readout, fitted, points[idx]) - want[idx]) ** 2).mean()
+
     start = errors()
-    for step in range(steps):
-        for group in opt.param_groups:
-            group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * step / steps))
-        idx = torch.randint(0, points.shape[0], (batch,), generator=g, device=points.device)
-        loss = ((heads(readout, fitted, points[idx]) - want[idx]) ** 2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+    fit_on_points(fitted.parameters(), batch_error, points.shape[0], steps, lr, batch, seed, points.device)
     end = errors()
     fitted.requires_grad_(False)
     restated = LMRMPrediction(fitted, readout.material_decoder, readout.uncertainty_decoder, readout.pbr_decoder)

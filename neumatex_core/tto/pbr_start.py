@@ -28,6 +28,7 @@ import torch
 
 from neumatex_core.capture.tonemap import Tonemap
 from neumatex_core.device import runs_side_by_side, side_by_side, torch_threads
+from neumatex_core.fields.fit import fit_on_points
 from neumatex_core.geometry.camera import Camera
 from neumatex_core.geometry.mesh import Mesh
 from neumatex_core.lighting.envmap import EnvironmentMap
@@ -67,8 +68,6 @@ def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor
     (benchmark object 6: start error 0.08 instead of 1e-3, PathTrace 5.8 dB; docs/design-notes.md item 39), and a
     start made with the frozen decoder is the same whether or not TTO fine-tunes it afterwards."""
     want = torch.cat([rho_d, (latent + 1) / 2], dim=-1).detach()
-    opt = torch.optim.Adam([neural.tensor], lr=lr)
-    g = torch.Generator(device=points.device).manual_seed(seed)
 
     def error(idx: torch.Tensor | None = None) -> torch.Tensor:
         p, w = (points, want) if idx is None else (points[idx], want[idx])
@@ -76,14 +75,7 @@ def fit_planes(neural: NeuralTriplane, points: torch.Tensor, rho_d: torch.Tensor
         return ((torch.cat([got[:, :3], (got[:, 3:] + 1) / 2], dim=-1) - w) ** 2).mean()
 
     with frozen(neural.decoder):
-        for step in range(steps):
-            for group in opt.param_groups:
-                group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * step / steps))
-            idx = torch.randint(0, points.shape[0], (batch,), generator=g, device=points.device)
-            loss = error(idx)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+        fit_on_points([neural.tensor], error, points.shape[0], steps, lr, batch, seed, points.device)
     with torch.no_grad():
         return float(error())
 
