@@ -87,8 +87,9 @@ def test_kill9_worker_during_tto_another_worker_finishes(service: Service) -> No
     first = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        j = submit(c, cap["id"], tto={"steps": 40, "checkpoint_every": 4})
-        wait_in_tto(c, j["id"], 10 / 40, "TTO step 10")
+        # 400 steps (about 7 s here): the poll must see the TTO running, past a checkpoint, before it ends
+        j = submit(c, cap["id"], tto={"steps": 400, "checkpoint_every": 4})
+        wait_in_tto(c, j["id"], 1 / 4, "a quarter of the TTO")
         before = done_times(service, j["id"])
         assert set(before) == {"validate", "prepare_views", "lmrm"}
         first.kill9()
@@ -129,8 +130,9 @@ def test_redis_restarted_mid_job_no_job_lost(service: Service) -> None:
     worker = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        a = submit(c, cap["id"], tto={"steps": 24})
-        wait_in_tto(c, a["id"], 3 / 24, "TTO of job A")
+        # 400 steps (about 7 s here): 24 left a TTO window under a second that the poll missed now and then
+        a = submit(c, cap["id"], tto={"steps": 400})
+        wait_in_tto(c, a["id"], 1 / 10, "TTO of job A")
         service.redis.stop()
         b = submit(c, cap["id"])  # accepted while the broker is down: the reaper sends it later
         assert b["state"] == "queued"
@@ -172,9 +174,9 @@ def test_api_restarted_mid_job_job_finishes(service: Service) -> None:
     worker = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        # 60 steps (about 3 s here): 20 left a TTO window of about 1 s that the poll missed now and then
-        j = submit(c, cap["id"], tto={"steps": 60})
-        wait_in_tto(c, j["id"], 2 / 60, "TTO")
+        # 400 steps (about 7 s here): 20 left a TTO window under a second that the poll missed now and then
+        j = submit(c, cap["id"], tto={"steps": 400})
+        wait_in_tto(c, j["id"], 1 / 30, "TTO")
     service.restart_api()
     with service.client() as c:
         done = wait_state(c, j["id"], ("completed", "failed"), 240, service)
@@ -191,14 +193,21 @@ def test_cancel_during_tto_stops_within_seconds_and_retry_resumes(service: Servi
         cap = upload(c, capture_zip()).json()
         j = submit(c, cap["id"], tto={"steps": 30, "checkpoint_every": 2})
         wait_in_tto(c, j["id"], 5 / 30, "TTO step 5")
-        t0 = time.monotonic()
-        r = c.post(f"/v1/jobs/{j['id']}/cancel")
+        # The worker is paused while the cancel lands, so the cancel comes between two TTO steps however fast this
+        # machine runs them: unpaused, a 30-step TTO here could end before its next poll saw the cancel.
+        with worker.paused():
+            t0 = time.monotonic()
+            r = c.post(f"/v1/jobs/{j['id']}/cancel")
         assert r.status_code == 200 and r.json()["state"] == "canceled"
 
         def stopped() -> dict[str, Any] | None:
             return next((e for e in events_of(service, j["id"]) if e["event"] == "worker"), None)
 
-        event = wait_for(stopped, 30, "the worker to stop", every=0.1)
+        try:
+            event = wait_for(stopped, 30, "the worker to stop", every=0.1)
+        except AssertionError as exc:
+            runs = [(r["stage"], r["status"]) for r in job(c, j["id"])["stage_runs"]]
+            raise AssertionError(f"{exc}; the stage runs now: {runs}") from None
         waited = time.monotonic() - t0
         assert event["status"] == "stopped" and event["reason"] == "canceled" and event["stage"] == "tto"
         assert waited < 5.0, f"the worker took {waited:.1f} s to stop"
