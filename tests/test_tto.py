@@ -1364,6 +1364,71 @@ def test_select_basis_joins_another_basis_to_the_choice_and_gives_that_basis_pla
             replace(cfg, **bad).check()
 
 
+def test_select_lmrm_start_joins_the_lmrm_start_to_the_choice_and_gives_its_plain_result(example, truth_prediction,
+                                                                                         tmp_path):
+    """TTOConfig.select_lmrm_start: each basis's two candidates run a second time from the LMRM's start
+    (`LMRM_START_FULL`: the start nearly all the LMRM's, anchored where it made it), from the same PBR solution and
+    scored on the same held-out photos; the side whose kept candidate scores best goes on. Each side's scores are
+    those of the plain TTO with that start and basis, and the result is the plain TTO of the side taken, bit for bit.
+    The progress counts the four sides' candidates; a stop during an LMRM side resumes to the same result
+    (docs/design-notes.md item 98)."""
+    from neumatex_core.materials.neural_basis import BASIS_V6, load_basis
+    from neumatex_core.tto import solve
+    from neumatex_core.tto.config import LMRM_START_FULL
+    from neumatex_core.tto.pbr_start import in_select_basis
+
+    cfg = TTOConfig.preset("tiny", steps=4, pbr_steps=4, pixels=64, spp=1, max_bounces=1, init="pbr", reg="start",
+                           lambda_reg=0.0, lambda_consistency=1.0, select_uniform=True, select_fraction=0.5,
+                           select_reuse_start=True, select_continue=True, train_decoder=True,
+                           decoder_in_other_basis=False, pbr_fit_steps=50, select_margin_db=0.0,
+                           select_basis=BASIS_V6, select_lmrm_start=True)  # fmt: skip
+    assert cfg.run_steps() == 4 + 4 * 2 * 2 + 2
+    args = (example.mesh, example.envmap, example.photos, example.capture.tonemap, perturbed(truth_prediction, 0.2))
+    v6 = load_basis(basis_id=BASIS_V6)
+    pbr_v1 = replace(cfg, select_basis="", select_lmrm_start=False)
+    lmrm_v1 = replace(pbr_v1, **LMRM_START_FULL)
+    sides = {"": solve(pbr_v1, *args, example.basis),
+             "select_basis_": solve(in_select_basis(replace(cfg, select_lmrm_start=False)), *args, v6),
+             "select_lmrm_": solve(lmrm_v1, *args, example.basis),
+             "select_basis_lmrm_": solve(in_select_basis(replace(cfg, select_lmrm_start=False, **LMRM_START_FULL)),
+                                         *args, v6)}  # fmt: skip
+
+    def kept(result) -> float:
+        s = result.selection
+        return s["validation_psnr_uniform"] if s["uniform_kept"] else s["validation_psnr_textured"]
+
+    steps: list[int] = []
+    chosen = solve(cfg, *args, example.basis, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
+    assert steps == list(range(1, cfg.run_steps() + 1))
+    assert {"select_uniform_lmrm.pt", "select_textured_other_lmrm.pt"} <= {p.name for p in tmp_path.iterdir()}
+    s = chosen.selection
+    for prefix, plain in sides.items():  # each side's candidates are its plain TTO's
+        for name in ("uniform", "textured"):
+            assert s[f"{prefix or 'validation_'}psnr_{name}"] == plain.selection[f"validation_psnr_{name}"]
+    for prefix in ("select_lmrm_", "select_basis_lmrm_"):  # each LMRM side's start records the LMRM's share of it
+        for key in ("lmrm_start_weight_rho", "lmrm_start_weight_latent"):
+            assert s[f"{prefix}{key}"] == sides[prefix].selection[key]
+    assert s["select_lmrm_lmrm_start_weight_rho"] > 0 and s["select_basis_lmrm_lmrm_start_weight_latent"] == 0.0
+    scores = [kept(plain) for plain in sides.values()]
+    best = scores.index(max(scores))  # the first of equal scores: a side is taken only by scoring better
+    print("held-out PSNR of the sides (v1, v6, v1 from the LMRM, v6 from the LMRM):", scores)
+    assert s["select_lmrm_taken"] == float(scores[2] > max(scores[:2]))
+    final = list(sides.values())[best]
+    assert chosen.params.field().basis.basis_id == final.params.field().basis.basis_id
+    assert torch.equal(chosen.params.tensor, final.params.tensor)
+    # the LMRM's side in the configured basis forced (every later side taken): its plain TTO, bit for bit
+    two = replace(cfg, select_basis="", select_margin_db=-100.0)
+    forced = solve(two, *args, example.basis)
+    reference = solve(replace(lmrm_v1, select_margin_db=-100.0), *args, example.basis)
+    assert forced.selection["select_lmrm_taken"] == 1.0 and torch.equal(forced.params.tensor, reference.params.tensor)
+    (tmp_path / "stopped").mkdir()
+    resumed = resumed_after_stop(two, (*args, example.basis), tmp_path / "stopped", 2 + 1)  # the LMRM's candidate 1
+    assert resumed.selection == forced.selection and torch.equal(resumed.params.tensor, forced.params.tensor)
+    for bad in ({"select_uniform": False}, {"reg": "none"}):
+        with pytest.raises(ValueError, match="select_lmrm_start"):
+            replace(two, **bad).check()
+
+
 def test_without_the_alternative_basis_the_choice_is_the_same_where_the_configured_basis_holds_the_start(
         example, truth_prediction):
     """The default since item 81 (docs/design-notes.md) tries basis v6 beside v1 and no longer has v4 as the

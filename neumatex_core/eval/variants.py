@@ -42,7 +42,7 @@ from dataclasses import replace
 from typing import Any
 
 from neumatex_core.materials.neural_basis import BASIS_V2, BASIS_V3, BASIS_V4, BASIS_V5, BASIS_V6
-from neumatex_core.tto.config import TTOConfig
+from neumatex_core.tto.config import LMRM_START_FULL, TTOConfig
 
 OURS: dict[str, Any] = {"field": "triplane", "init": "lmrm", "reg": "uncertainty", "material": "neural"}
 # the extraction's default since 2026-11-27 (docs/design-notes.md, item 34), fixed here so that its variants do not
@@ -383,7 +383,12 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # restated candidate, against the default on objects 0-7: BaseColor +2.36 +- 1.41, Latents +3.58 +- 1.31,
     # PathTrace clean -0.12 +- 0.99 (not resolved); with the shipped LMRM it gains nothing (PathTrace clean -0.39 +-
     # 0.42, BaseColor -1.07 +- 1.40, Latents +0.46 +- 1.00; design note 96)
-    "default_lmrm_start_full": {**DEFAULT_81, "lmrm_start_var": 1.0, "lmrm_start_anchor": True, "lambda_reg": 0.1},
+    "default_lmrm_start_full": {**DEFAULT_81, **LMRM_START_FULL},
+    # ... the default with default_lmrm_start_full's start joined to its choice on held-out photos
+    # (TTOConfig.select_lmrm_start): each basis's candidates also run from the LMRM's start, and the side whose kept
+    # candidate scores best is continued. Where the two variants ran with one LMRM, its sides are theirs bit for bit
+    # (design note 98)
+    "default_choose_lmrm_start": {**DEFAULT_81, "select_lmrm_start": True},
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
     # falls from 0.2 to 0.0067 / 0.002 instead of 0.02 over the 600 settling steps): the same steps, no time. From
     # the truth on object 0 PathTrace 36.62 / 36.14 against the default's 36.63 (0.3 instead: 35.89): not run from
@@ -512,6 +517,8 @@ TABLES: dict[str, list[str]] = {
                    "default_lmrm_start_anchor_2", "default_lmrm_start_full"],
     # the one start that gained (design note 96), against the PBR baseline, for objects beyond the first 8
     "lmrm_start_full": ["pbr", "default_lmrm_start_full"],
+    # the default and that start, chosen between on held-out photos (design note 98)
+    "choose_lmrm_start": ["pbr", "default_choose_lmrm_start"],
     "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",
                      "pbr_start_anchor_01_decorrelated", "pbr_start_anchor_01_lin_decorrelated"],
 }

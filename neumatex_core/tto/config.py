@@ -52,6 +52,10 @@ BIG = 1 << 24
 # sheen relit - PBR +2.09 dB, coat +3.71 (without it +1.26, +2.98); on textured objects it costs 1.2-1.8 dB
 # (docs/design-notes.md item 35)
 UNIFORM_RHO_VALUE = 3.0
+# The start from the LMRM that select_lmrm_start tries beside the PBR start: nearly all the LMRM's prediction (the PBR
+# start's variance taken as 1, so the LMRM's share is 1 / (1 + its variance)), anchored (0.1) where the LMRM made it
+# (docs/design-notes.md items 96-98)
+LMRM_START_FULL: dict[str, Any] = {"lmrm_start_var": 1.0, "lmrm_start_anchor": True, "lambda_reg": 0.1}
 # The allowed values of the numeric fields (checked by TTOConfig.check; the job service's bounds).
 RANGES: dict[str, Range] = {
     "steps": Range(1, 100_000), "pixels": Range(1, 1 << 20), "spp": Range(1, 4096), "max_bounces": Range(1, 64),
@@ -288,6 +292,12 @@ class TTOConfig:
     # select_margin_db. So one capture's material can be one that v6's 16 latents hold better (metals, most of the
     # benchmark) while another keeps v1 (Cycles sheens, which v6 loses by 5 dB; item 80)
     select_basis: str = ""
+    # with select_anchor / select_uniform: each basis's two candidates run a second time from the start taken from the
+    # LMRM's prediction (`LMRM_START_FULL`, `lmrm_started`) and join the choice on the same held-out photos, taken
+    # where their kept candidate scores better than the PBR start's by more than select_margin_db. A better LMRM's
+    # start gains 5-7 dB where the PBR start fails and loses up to 4 dB where it is best (docs/design-notes.md
+    # items 97-98); the choice costs two (with select_basis four) more candidates' steps
+    select_lmrm_start: bool = False
     # reg "start": weight of the consistency term (tto/loss.py `consistency`): pairs of anchor points whose start
     # G-buffers are alike (Gaussian weight of width consistency_sigma in G-buffer units) must change alike from the
     # start (consistency_of "change"; "value": end alike), so the neural phase may move a material everywhere at once
@@ -354,6 +364,12 @@ class TTOConfig:
                              "needs init 'pbr', select_anchor or select_uniform, and a basis other than `basis`; got "
                              f"init {self.init!r}, select_anchor {self.select_anchor}, select_uniform "
                              f"{self.select_uniform}, basis {self.basis!r}, select_basis {self.select_basis!r}")
+        if self.select_lmrm_start and (not (self.select_anchor or self.select_uniform) or self.init != "pbr"
+                                       or self.reg != "start"):
+            raise ValueError("TTO select_lmrm_start joins candidates started from the LMRM to the choice on held-out "
+                             "photos: it needs init 'pbr', reg 'start' and select_anchor or select_uniform; got init "
+                             f"{self.init!r}, reg {self.reg!r}, select_anchor {self.select_anchor}, select_uniform "
+                             f"{self.select_uniform}")
         if self.alternative_basis and (self.init != "pbr" or self.material != "neural"):
             raise ValueError("TTO alternative_basis is tried for the start of the neural phase from the PBR solution: "
                              f"it needs init 'pbr' and material 'neural', got {self.init!r}, {self.material!r}")
@@ -458,14 +474,23 @@ class TTOConfig:
     def run_steps(self) -> int:
         """Adam steps the TTO runs (its progress counts these): total_steps, and with select_anchor or
         select_uniform first the choice (the PBR phase and two neural phases of select_steps on all photos but the
-        held-out ones, two more with select_basis), after which select_reuse_start runs the neural phase alone
-        (select_continue: its remaining continue_steps)."""
+        held-out ones per side: twice as many sides with select_basis, and twice again with select_lmrm_start),
+        after which select_reuse_start runs the neural phase alone (select_continue: its remaining continue_steps)."""
         if not (self.select_anchor or self.select_uniform):
             return self.total_steps()
-        choice = self.pbr_steps + 2 * self.select_steps() * (2 if self.select_basis else 1)
+        choice = self.pbr_steps + 2 * self.select_steps() * self.select_sides()
         if not self.select_reuse_start:
             return choice + self.total_steps()
         return choice + (self.continue_steps() if self.select_continue else self.steps)
+
+    def select_sides(self) -> int:
+        """How many sides the choice on held-out photos has, two candidates each: the configured basis, with
+        select_basis the other, each from the PBR start and with select_lmrm_start from the LMRM's too."""
+        return (2 if self.select_basis else 1) * (2 if self.select_lmrm_start else 1)
+
+    def lmrm_started(self) -> TTOConfig:
+        """This config with its start taken from the LMRM (`LMRM_START_FULL`): select_lmrm_start's other sides."""
+        return replace(self, **LMRM_START_FULL, select_lmrm_start=False)
 
     def continue_steps(self) -> int:
         """Neural steps on every photo after the choice with select_continue: those the chosen candidate did not run."""

@@ -248,8 +248,8 @@ def _pbr_phase(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: Ph
     # baseline's own TTO.
     pbr_config = replace(config, material="pbr", init="lmrm", reg="none", steps=config.pbr_steps, basis="",
                          select_anchor=False, select_uniform=False, select_basis="", alternative_basis="",
-                         settle_fraction=0.0,
-                         lambda_smooth=0.0, coarse_factor=1, optimizer="adam", control_variate="off", lr_warmup=0,
+                         select_lmrm_start=False, settle_fraction=0.0, lambda_smooth=0.0, coarse_factor=1,
+                         optimizer="adam", control_variate="off", lr_warmup=0,
                          adam_beta1=TTOConfig.adam_beta1, adam_beta2=TTOConfig.adam_beta2, adam_eps=TTOConfig.adam_eps)
     pbr_problem = build_problem(pbr_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     return optimise(pbr_problem, pbr_config, progress, should_stop, checkpoint)
@@ -268,7 +268,7 @@ def _neural_phase(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Envir
     other_basis = start.switched or bool(config.basis)
     neural_config = replace(config, init="lmrm", basis="", reg="none" if config.reg == "start" else config.reg,
                             lr=config.lr * config.neural_lr_scale, select_anchor=False,
-                            select_uniform=False, select_basis="", alternative_basis="",
+                            select_uniform=False, select_basis="", alternative_basis="", select_lmrm_start=False,
                             train_decoder=config.train_decoder and (config.decoder_in_other_basis or not other_basis))
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available, truth)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
@@ -410,7 +410,7 @@ def fit_start(config: TTOConfig, first: TTOResult, mesh: Mesh, envmap: Environme
     that a family prototype reproduces better on `photos` start there (`appearance_start`); with
     config.lmrm_start_var, the start is then blended with the LMRM's prediction (`lmrm_blend`)."""
     neural_config = replace(config, init="lmrm", basis="", reg="none", select_anchor=False, select_uniform=False,
-                            select_basis="", alternative_basis="")
+                            select_basis="", alternative_basis="", select_lmrm_start=False)
     problem = build_problem(neural_config, mesh, envmap, photos, tonemap, prediction, basis, anchor_available)
     assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
     record: dict[str, float] = {}
@@ -554,7 +554,8 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     checkpoint = partial(_checkpoint, checkpoint_dir)
     switch = "select_anchor" if config.select_anchor else "select_uniform"
     choice = CHOICES[switch]
-    candidates = choice.candidates(replace(config, select_anchor=False, select_uniform=False, select_basis=""))
+    plain = replace(config, select_anchor=False, select_uniform=False, select_basis="", select_lmrm_start=False)
+    candidates = choice.candidates(plain)
     total = config.run_steps()
     try:
         held_out = validation_frames(photos.cameras, config.validation_photos, mesh.bounding_sphere()[0])
@@ -623,20 +624,28 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                                                  lambda q: uniform.params.gbuffer(q, None), textured.mesh or mesh,
                                                  envmap, first.params.tensor.device, seed=config.seed))
         selection.update(start.record)
-        if config.select_basis:  # the same candidates in the other basis, from the same PBR solution
-            other_config = in_select_basis(config)
-            other_basis = load_basis(str(first.params.tensor.device), config.select_basis)
-            other_start = neural_start(other_config, first, mesh, envmap, fit_photos, held_photos, tonemap,
-                                       prediction, other_basis, anchor_available)  # fmt: skip
-            other = candidates_in(choice.candidates(replace(other_config, select_anchor=False, select_uniform=False)),
-                                  other_start, config.pbr_steps + 2 * steps, "_other")  # fmt: skip
-            if isinstance(other, TTOResult):
-                return other
-            taken = other.score > own.score + config.select_margin_db
-            selection.update({**scores_of(other, "select_basis_"), "select_basis_taken": float(taken),
-                              **{f"select_basis_{k}": v for k, v in other_start.record.items()}})
+        # the other sides, in order: the other basis from the same PBR solution (select_basis), then each basis from
+        # the LMRM's start (select_lmrm_start); each is taken where its kept candidate beats the side taken so far
+        others: list[tuple[TTOConfig, str, str]] = []  # (config of the side, record prefix, checkpoint suffix)
+        in_other = replace(in_select_basis(config), select_anchor=False, select_uniform=False, select_lmrm_start=False)
+        if config.select_basis:
+            others.append((in_other, "select_basis_", "_other"))
+        if config.select_lmrm_start:
+            others.append((plain.lmrm_started(), "select_lmrm_", "_lmrm"))
+            if config.select_basis:
+                others.append((in_other.lmrm_started(), "select_basis_lmrm_", "_other_lmrm"))
+        for k, (side_config, prefix, suffix) in enumerate(others, start=1):
+            side_basis = load_basis(str(first.params.tensor.device), side_config.basis) if side_config.basis else basis
+            side_start = neural_start(side_config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction,
+                                      side_basis, anchor_available)  # fmt: skip
+            made = candidates_in(choice.candidates(side_config), side_start, config.pbr_steps + 2 * k * steps, suffix)
+            if isinstance(made, TTOResult):
+                return made
+            taken = made.score > side.score + config.select_margin_db
+            selection.update({**scores_of(made, prefix), f"{prefix}taken": float(taken),
+                              **{f"{prefix}{key}": v for key, v in side_start.record.items()}})
             if taken:
-                side, chosen = other, other.kept
+                side, chosen = made, made.kept
         runs, start = side.runs, side.start
         candidates = side.configs
     final_config, final_basis = candidates[chosen], basis
