@@ -8,7 +8,7 @@ results the results page was made from (kept in bench/results/eval-clean). Paire
         --lmrm-weights bench/candidates/NAME/lmrm.safetensors --lmrm-readout shipped --out runs/ship/NAME \\
         --doc '' --record ''
     .venv/bin/python bench/lmrm_ship.py runs/ship/NAME[+FOLDER...] [--product bench/results/eval-clean] \\
-        [--keep bench/results/lmrm-swap/NAME]
+        [--keep bench/results/lmrm-swap/NAME] [--variant default_choose_lmrm_start]
 
 FOLDER+FOLDER...: evaluation folders of the new extraction, their objects joined (the first folder that has an
 object gives it). It prints, mean +- standard error (objects ahead): the new default - today's on each metric; the
@@ -16,8 +16,9 @@ new PBR baseline (from the restated prediction's PBR head) - today's; and under 
 baseline on PathTrace and Relight clean (issue 14 asks >= +3 and >= +2 dB); and a choice between the two per object
 on held-out photos, simulated from what each run recorded (the best held-out PSNR among its TTO's candidates: the
 new one taken where it is higher), against today's. `--keep DIR` copies the new folders'
-results/ to DIR/results/ (small; a later session adds objects there). Appends one JSON line to
-bench/results/lmrm_ship.jsonl.
+results/ to DIR/results/ (small; a later session adds objects there). `--variant` names the new extraction's variant
+instead: `default_choose_lmrm_start` (table choose_lmrm_start) makes that choice inside its TTO, from the LMRM's
+start and the PBR start (design note 98). Appends one JSON line to bench/results/lmrm_ship.jsonl.
 """
 
 from __future__ import annotations
@@ -39,13 +40,19 @@ from neumatex_core.eval.variants import DEFAULT_VARIANT  # noqa: E402
 
 NEW = "default_lmrm_start_full"
 PRODUCT = Path(__file__).resolve().parent / "results" / "eval-clean"
-# the table's row names: the new extraction and its PBR baseline, today's and its
-ROWS = {"new": NEW, "new_pbr": PBR}
+# the table's row names: the new extraction and its PBR baseline (`rows`), today's and its
 PRODUCT_ROWS = {"product": DEFAULT_VARIANT, "product_pbr": PBR}
 ROWS_PAIRED = {"default": ("new", "product"), "pbr": ("new_pbr", "product_pbr"), "chosen": ("chosen", "product")}
-# the held-out photos' PSNR of each candidate a default's TTO compared (configured basis and v6, textured and uniform)
-HELD_OUT = ("choice_validation_psnr_textured", "choice_validation_psnr_uniform", "choice_select_basis_psnr_textured",
-            "choice_select_basis_psnr_uniform")
+# the held-out photos' PSNR of each candidate a default's TTO compared (configured basis and v6, textured and uniform;
+# with select_lmrm_start each from the LMRM's start too)
+HELD_OUT = tuple(f"choice_{side}psnr_{candidate}" for side in ("validation_", "select_basis_", "select_lmrm_",
+                                                                "select_basis_lmrm_")
+                 for candidate in ("textured", "uniform"))  # fmt: skip
+
+
+def rows(variant: str) -> dict[str, str]:
+    """The new side's row names: the new extraction (eval variant `variant`) and its PBR baseline."""
+    return {"new": variant, "new_pbr": PBR}
 
 
 def held_out(folders: list[Path], variant: str) -> dict[str, float]:
@@ -77,10 +84,10 @@ def chosen(res: Results, new_held: dict[str, float], product_held: dict[str, flo
     return {**res, "chosen": rows}
 
 
-def joined(new: list[Path], product: list[Path]) -> Results:
-    """One table of the new folders' `ROWS` and the product folders' `PRODUCT_ROWS` (each object from the first
-    folder of its side that has both of that side's rows)."""
-    return {**joined_folders(new, ROWS), **joined_folders(product, PRODUCT_ROWS)}
+def joined(new: list[Path], product: list[Path], variant: str = NEW) -> Results:
+    """One table of the new folders' `rows(variant)` and the product folders' `PRODUCT_ROWS` (each object from the
+    first folder of its side that has both of that side's rows)."""
+    return {**joined_folders(new, rows(variant)), **joined_folders(product, PRODUCT_ROWS)}
 
 
 def pair(res: Results, a: str, b: str, metric: str) -> dict[str, float]:
@@ -117,18 +124,20 @@ def main() -> int:
     parser.add_argument("new", help="FOLDER[+FOLDER...]: evaluation folders of the new extraction")
     parser.add_argument("--product", default=str(PRODUCT), help="FOLDER[+FOLDER...]: today's product's results")
     parser.add_argument("--keep", type=Path, default=None, help="copy the new folders' results to KEEP/results")
+    parser.add_argument("--variant", default=NEW, help="the new extraction's eval variant")
     parser.add_argument("--no-record", action="store_true", help="print only; append no JSON line")
     args = parser.parse_args()
     new = [Path(p) for p in args.new.split("+") if p]
     product = [Path(p) for p in args.product.split("+") if p]
-    res = chosen(joined(new, product), held_out(new, NEW), held_out(product, DEFAULT_VARIANT))
+    res = chosen(joined(new, product, args.variant), held_out(new, args.variant), held_out(product, DEFAULT_VARIANT))
     figs = figures(res)
     if not figs["default"]:
-        print(f"no object has {NEW} and {PBR} in {args.new} and {DEFAULT_VARIANT} and {PBR} in {args.product}")
+        print(f"no object has {args.variant} and {PBR} in {args.new} and {DEFAULT_VARIANT} and {PBR} in "
+              f"{args.product}")
         return 1
     n = figs["default"][METRICS[0]]["n"] if METRICS[0] in figs["default"] else 0
-    print(f"the new extraction ({NEW}, restated candidate) - today's ({DEFAULT_VARIANT}, shipped LMRM), paired over "
-          f"{n} objects; mean +- standard error (objects ahead)")
+    print(f"the new extraction ({args.variant}, restated candidate) - today's ({DEFAULT_VARIANT}, shipped LMRM), "
+          f"paired over {n} objects; mean +- standard error (objects ahead)")
     for side in ("default", "pbr", "chosen"):
         for m, f in figs[side].items():
             a, b = ROWS_PAIRED[side]
@@ -142,7 +151,8 @@ def main() -> int:
             if (folder / "results").resolve() != (args.keep / "results").resolve():  # a kept folder is read too
                 shutil.copytree(folder / "results", args.keep / "results", dirs_exist_ok=True)
     if not args.no_record:
-        print(f"wrote {write_result('lmrm_ship', {'new': args.new, 'product': args.product, 'figures': figs})}")
+        record = {"new": args.new, "variant": args.variant, "product": args.product, "figures": figs}
+        print(f"wrote {write_result('lmrm_ship', record)}")
     return 0
 
 

@@ -330,3 +330,13 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
     finally:
         sys.argv = argv
     assert (new_a / "results" / "test-000002" / f"{bench.NEW}.json").is_file()
+    # another variant (--variant): its rows, and its held-out scores from the LMRM's sides too (select_lmrm_start)
+    choose = tmp_path / "choose" / "results" / "test-000000"
+    choose.mkdir(parents=True)
+    (choose / "pbr.json").write_text(json.dumps({"psnr_pathtrace_clean": 30.0, "psnr_relight_clean": 25.0}))
+    (choose / "default_choose_lmrm_start.json").write_text(json.dumps(
+        {"psnr_pathtrace_clean": 36.0, "psnr_relight_clean": 31.0, "choice_validation_psnr_uniform": 23.0,
+         "choice_select_basis_lmrm_psnr_textured": 26.0}))  # fmt: skip
+    assert bench.held_out([choose.parents[1]], "default_choose_lmrm_start") == {"test-000000": 26.0}
+    res = bench.joined([choose.parents[1]], [product], "default_choose_lmrm_start")
+    assert bench.figures(res)["default"]["psnr_pathtrace_clean"]["diff"] == pytest.approx(1.0)  # 36 - 35

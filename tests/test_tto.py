@@ -1301,6 +1301,12 @@ def test_shuffled_pixels_draw_every_pixel_once_an_epoch_whatever_the_batches(exa
     assert torch.equal(batch.index, whole[cfg.pixels_before(7):cfg.pixels_before(8)])
 
 
+def kept_score(result) -> float:
+    """The held-out PSNR of the candidate a TTO's choice kept (select_uniform)."""
+    s = result.selection
+    return s["validation_psnr_uniform"] if s["uniform_kept"] else s["validation_psnr_textured"]
+
+
 def test_select_basis_joins_another_basis_to_the_choice_and_gives_that_basis_plain_result(example, truth_prediction,
                                                                                           tmp_path):
     """TTOConfig.select_basis: the choice's two candidates also run in basis v6 (16 latent numbers, its decoder
@@ -1324,10 +1330,6 @@ def test_select_basis_joins_another_basis_to_the_choice_and_gives_that_basis_pla
     in_v6 = solve(in_select_basis(cfg), *args, v6)
     assert in_v6.params.field().basis.basis_id == BASIS_V6 and in_v6.params.trained_decoder() is not None
 
-    def kept(result) -> float:
-        s = result.selection
-        return s["validation_psnr_uniform"] if s["uniform_kept"] else s["validation_psnr_textured"]
-
     steps: list[int] = []
     chosen = solve(cfg, *args, example.basis, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
     assert steps == list(range(1, cfg.run_steps() + 1))
@@ -1338,8 +1340,8 @@ def test_select_basis_joins_another_basis_to_the_choice_and_gives_that_basis_pla
         assert s[f"validation_psnr_{name}"] == plain.selection[f"validation_psnr_{name}"]
         assert s[f"select_basis_psnr_{name}"] == in_v6.selection[f"validation_psnr_{name}"]
     assert s["select_basis_uniform_kept"] == in_v6.selection["uniform_kept"]
-    print("held-out PSNR, configured basis", kept(plain), "v6", kept(in_v6))
-    assert s["select_basis_taken"] == float(kept(in_v6) > kept(plain))
+    print("held-out PSNR, configured basis", kept_score(plain), "v6", kept_score(in_v6))
+    assert s["select_basis_taken"] == float(kept_score(in_v6) > kept_score(plain))
     resumed = resumed_after_stop(cfg, (*args, example.basis), tmp_path / "stopped", 4 + 2 + 1)  # v6 candidate 1
     assert resumed.selection == chosen.selection and torch.equal(resumed.params.tensor, chosen.params.tensor)
     # with the margin each way, each basis in turn: the plain TTO in that basis at that margin, bit for bit (a
@@ -1393,10 +1395,6 @@ def test_select_lmrm_start_joins_the_lmrm_start_to_the_choice_and_gives_its_plai
              "select_basis_lmrm_": solve(in_select_basis(replace(cfg, select_lmrm_start=False, **LMRM_START_FULL)),
                                          *args, v6)}  # fmt: skip
 
-    def kept(result) -> float:
-        s = result.selection
-        return s["validation_psnr_uniform"] if s["uniform_kept"] else s["validation_psnr_textured"]
-
     steps: list[int] = []
     chosen = solve(cfg, *args, example.basis, checkpoint_dir=tmp_path, progress=lambda s, n, row: steps.append(s))
     assert steps == list(range(1, cfg.run_steps() + 1))
@@ -1409,7 +1407,7 @@ def test_select_lmrm_start_joins_the_lmrm_start_to_the_choice_and_gives_its_plai
         for key in ("lmrm_start_weight_rho", "lmrm_start_weight_latent"):
             assert s[f"{prefix}{key}"] == sides[prefix].selection[key]
     assert s["select_lmrm_lmrm_start_weight_rho"] > 0 and s["select_basis_lmrm_lmrm_start_weight_latent"] == 0.0
-    scores = [kept(plain) for plain in sides.values()]
+    scores = [kept_score(plain) for plain in sides.values()]
     best = scores.index(max(scores))  # the first of equal scores: a side is taken only by scoring better
     print("held-out PSNR of the sides (v1, v6, v1 from the LMRM, v6 from the LMRM):", scores)
     assert s["select_lmrm_taken"] == float(scores[2] > max(scores[:2]))
