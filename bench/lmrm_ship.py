@@ -18,7 +18,11 @@ on held-out photos, simulated from what each run recorded (the best held-out PSN
 new one taken where it is higher), against today's. `--keep DIR` copies the new folders'
 results/ to DIR/results/ (small; a later session adds objects there). `--variant` names the new extraction's variant
 instead: `default_choose_lmrm_start` (table choose_lmrm_start) makes that choice inside its TTO, from the LMRM's
-start and the PBR start (design note 98). Appends one JSON line to bench/results/lmrm_ship.jsonl.
+start and the PBR start (design note 98); with `--margins 0,0.25,...` it also prints the choice had it taken the LMRM's
+start only where that start's best held-out score beats the PBR start's by more than each margin (dB). That needs
+both starts' results per object: the side the choice took is its own result, the other is the PBR start's
+(`default_choose_v6_alone`) or the LMRM's (`default_lmrm_start_full`) run in the new folders under the same LMRM
+(each side of the choice is that run's, bit for bit). Appends one JSON line to bench/results/lmrm_ship.jsonl.
 """
 
 from __future__ import annotations
@@ -48,6 +52,11 @@ ROWS_PAIRED = {"default": ("new", "product"), "pbr": ("new_pbr", "product_pbr"),
 HELD_OUT = tuple(f"choice_{side}psnr_{candidate}" for side in ("validation_", "select_basis_", "select_lmrm_",
                                                                 "select_basis_lmrm_")
                  for candidate in ("textured", "uniform"))  # fmt: skip
+
+
+# the choice's sides (select_lmrm_start): their held-out score prefixes and the plain run each side is, bit for bit
+SIDES = {"pbr_start": (("validation_", "select_basis_"), DEFAULT_VARIANT),
+         "lmrm_start": (("select_lmrm_", "select_basis_lmrm_"), NEW)}  # fmt: skip
 
 
 def rows(variant: str) -> dict[str, str]:
@@ -82,6 +91,45 @@ def chosen(res: Results, new_held: dict[str, float], product_held: dict[str, flo
                 if not take_new or obj in res["new"][m]:
                     rows[m][obj] = res["new"][m][obj] if take_new else value
     return {**res, "chosen": rows}
+
+
+def sides_of(folders: list[Path], variant: str) -> dict[str, dict[str, Any]]:
+    """object -> {"gap": the LMRM start's best held-out PSNR - the PBR start's (dB), "pbr_start" / "lmrm_start":
+    {metric: value}} for each object of `variant` (a choice with select_lmrm_start) whose two sides' results are
+    known: the side it took (gap > 0) is its own result, the other that side's plain run (`SIDES`) in `folders`
+    (the first folder that has it)."""
+    def record(obj: str, name: str) -> dict[str, Any] | None:
+        return next((json.loads(f.read_text()) for folder in folders
+                     if (f := folder / "results" / obj / f"{name}.json").is_file()), None)  # fmt: skip
+
+    out: dict[str, dict[str, Any]] = {}
+    for obj in sorted({f.parent.name for folder in folders for f in (folder / "results").glob(f"*/{variant}.json")}):
+        chose = record(obj, variant)
+        assert chose is not None
+        best = {side: max(float(chose[f"choice_{p}psnr_{c}"]) for p in prefixes for c in ("textured", "uniform")
+                          if f"choice_{p}psnr_{c}" in chose)
+                for side, (prefixes, _) in SIDES.items()}  # fmt: skip
+        gap = best["lmrm_start"] - best["pbr_start"]
+        taken = "lmrm_start" if gap > 0 else "pbr_start"
+        other = next(side for side in SIDES if side != taken)
+        plain = record(obj, SIDES[other][1])
+        if plain is not None:
+            out[obj] = {"gap": gap, taken: {m: chose.get(m) for m in METRICS},
+                        other: {m: plain.get(m) for m in METRICS}}
+    return out
+
+
+def with_margins(res: Results, sides: dict[str, dict[str, Any]], margins: list[float]) -> Results:
+    """`res` with a row "margin <m>" per margin: per object the LMRM start's result where its best held-out score
+    beats the PBR start's by more than m dB, else the PBR start's (`sides_of`)."""
+    out = dict(res)
+    for margin in margins:
+        out[f"margin {margin:g}"] = {
+            m: {obj: v for obj, side in sides.items()
+                if isinstance(v := side["lmrm_start" if side["gap"] > margin else "pbr_start"][m], (int, float))
+                and math.isfinite(v)}
+            for m in METRICS}  # fmt: skip
+    return out
 
 
 def joined(new: list[Path], product: list[Path], variant: str = NEW) -> Results:
@@ -125,6 +173,8 @@ def main() -> int:
     parser.add_argument("--product", default=str(PRODUCT), help="FOLDER[+FOLDER...]: today's product's results")
     parser.add_argument("--keep", type=Path, default=None, help="copy the new folders' results to KEEP/results")
     parser.add_argument("--variant", default=NEW, help="the new extraction's eval variant")
+    parser.add_argument("--margins", default="", help="comma-separated margins (dB) for the LMRM's start (--variant "
+                        "default_choose_lmrm_start): the choice had it needed to win by that much")
     parser.add_argument("--no-record", action="store_true", help="print only; append no JSON line")
     args = parser.parse_args()
     new = [Path(p) for p in args.new.split("+") if p]
@@ -146,6 +196,20 @@ def main() -> int:
     for m, sides in figs["default_minus_pbr"].items():
         print(f"  the default - its PBR baseline, {m}: " + "  ".join(
             f"{side} {f['diff']:+.2f} +- {f['se']:.2f}" for side, f in sides.items()))
+    margins = [float(v) for v in args.margins.split(",") if v.strip()]
+    if margins:
+        sides = sides_of(new, args.variant)
+        res = with_margins(res, sides, margins)
+        figs["margins"] = {}
+        print(f"  the LMRM's start taken only where it wins on held-out photos by more than a margin ({len(sides)} "
+              "objects with both starts' results):")
+        for margin in margins:
+            row = f"margin {margin:g}"
+            taken = sum(side["gap"] > margin for side in sides.values())
+            figs["margins"][row] = {m: pair(res, row, "product", m) for m in METRICS
+                                    if paired_values(res, row, "product", m)}  # fmt: skip
+            print(f"    {row:11s} (LMRM's start on {taken}): " + "  ".join(
+                f"{m} {f['diff']:+.2f} +- {f['se']:.2f}" for m, f in figs["margins"][row].items()))
     if args.keep is not None:
         for folder in new:
             if (folder / "results").resolve() != (args.keep / "results").resolve():  # a kept folder is read too

@@ -340,3 +340,22 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
     assert bench.held_out([choose.parents[1]], "default_choose_lmrm_start") == {"test-000000": 26.0}
     res = bench.joined([choose.parents[1]], [product], "default_choose_lmrm_start")
     assert bench.figures(res)["default"]["psnr_pathtrace_clean"]["diff"] == pytest.approx(1.0)  # 36 - 35
+    # --margins: the choice had the LMRM's start needed to win by a margin. Object 0 took the LMRM's start (26 > 23:
+    # gap 3); object 1 took the PBR start (gap -1); each side the choice did not take comes from its plain run
+    def result(obj: str, name: str, clean: float, **held: float) -> None:
+        f = tmp_path / "choose" / "results" / obj / f"{name}.json"
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_text(json.dumps({"psnr_pathtrace_clean": clean, **{f"choice_{k}": v for k, v in held.items()}}))
+
+    result("test-000000", bench.DEFAULT_VARIANT, 33.0)  # the PBR start's result there
+    result("test-000001", "default_choose_lmrm_start", 30.0, validation_psnr_uniform=24.0,
+           select_lmrm_psnr_textured=23.0)  # fmt: skip
+    result("test-000001", bench.NEW, 35.0)  # the LMRM's start's result there
+    result("test-000002", "default_choose_lmrm_start", 30.0, validation_psnr_uniform=24.0,
+           select_lmrm_psnr_textured=25.0)  # fmt: skip
+    sides = bench.sides_of([choose.parents[1]], "default_choose_lmrm_start")
+    assert set(sides) == {"test-000000", "test-000001"}  # object 2 lacks the PBR start's plain run
+    assert sides["test-000000"]["gap"] == pytest.approx(3.0) and sides["test-000001"]["gap"] == pytest.approx(-1.0)
+    margins = bench.with_margins({}, sides, [0.0, 5.0])
+    assert margins["margin 0"]["psnr_pathtrace_clean"] == {"test-000000": 36.0, "test-000001": 30.0}
+    assert margins["margin 5"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0}
