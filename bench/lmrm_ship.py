@@ -121,8 +121,13 @@ def sides_of(folders: list[Path], variant: str) -> dict[str, dict[str, Any]]:
 
 def with_margins(res: Results, sides: dict[str, dict[str, Any]], margins: list[float]) -> Results:
     """`res` with a row "margin <m>" per margin: per object the LMRM start's result where its best held-out score
-    beats the PBR start's by more than m dB, else the PBR start's (`sides_of`)."""
+    beats the PBR start's by more than m dB, else the PBR start's (`sides_of`); and each start alone ("pbr_start",
+    "lmrm_start")."""
     out = dict(res)
+    for start in SIDES:
+        out[start] = {m: {obj: v for obj, side in sides.items()
+                          if isinstance(v := side[start][m], (int, float)) and math.isfinite(v)}
+                      for m in METRICS}  # fmt: skip
     for margin in margins:
         out[f"margin {margin:g}"] = {
             m: {obj: v for obj, side in sides.items()
@@ -210,6 +215,11 @@ def main() -> int:
                                     if paired_values(res, row, "product", m)}  # fmt: skip
             print(f"    {row:11s} (LMRM's start on {taken}): " + "  ".join(
                 f"{m} {f['diff']:+.2f} +- {f['se']:.2f}" for m, f in figs["margins"][row].items()))
+            figs["margins"][f"{row} - pbr_start"] = {m: pair(res, row, "pbr_start", m) for m in METRICS
+                                                     if paired_values(res, row, "pbr_start", m)}  # fmt: skip
+            print(f"    {'':11s} over the PBR start alone (the same LMRM): " + "  ".join(
+                f"{m} {f['diff']:+.2f} +- {f['se']:.2f} ({f['ahead']}/{f['n']})"
+                for m, f in figs["margins"][f"{row} - pbr_start"].items()))
     if args.keep is not None:
         for folder in new:
             if (folder / "results").resolve() != (args.keep / "results").resolve():  # a kept folder is read too

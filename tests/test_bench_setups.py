@@ -359,3 +359,5 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
     margins = bench.with_margins({}, sides, [0.0, 5.0])
     assert margins["margin 0"]["psnr_pathtrace_clean"] == {"test-000000": 36.0, "test-000001": 30.0}
     assert margins["margin 5"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0}
+    assert margins["pbr_start"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0}
+    assert margins["lmrm_start"]["psnr_pathtrace_clean"] == {"test-000000": 36.0, "test-000001": 35.0}

@@ -517,8 +517,9 @@ TABLES: dict[str, list[str]] = {
                    "default_lmrm_start_anchor_2", "default_lmrm_start_full"],
     # the one start that gained (design note 96), against the PBR baseline, for objects beyond the first 8
     "lmrm_start_full": ["pbr", "default_lmrm_start_full"],
-    # the default and that start, chosen between on held-out photos (design note 98)
-    "choose_lmrm_start": ["pbr", "default_choose_lmrm_start"],
+    # the default and that start, chosen between on held-out photos, beside each of the two alone under the same LMRM
+    # (each side of the choice is its plain run, bit for bit; design note 98)
+    "choose_lmrm_start": ["pbr", DEFAULT_VARIANT, "default_lmrm_start_full", "default_choose_lmrm_start"],
     "decorrelated": ["pbr", "pbr_decorrelated", "pbr_lin_decorrelated", "pbr_start_anchor_01",
                      "pbr_start_anchor_01_decorrelated", "pbr_start_anchor_01_lin_decorrelated"],
 }
