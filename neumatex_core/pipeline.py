@@ -550,9 +550,10 @@ def evaluation_only(tto: TTOConfig) -> str:
 
 
 def effective_tto(config: ExtractConfig, trained: bool) -> TTOConfig:
-    """The TTO config actually run: without a trained LMRM there is no anchor, so reg is "none"."""
+    """The TTO config actually run: without a trained LMRM there is no anchor, so reg is "none", and no start from
+    it to choose (select_lmrm_start off)."""
     tto = config.tto_config()
-    return tto if trained else replace(tto, reg="none")
+    return tto if trained else replace(tto, reg="none", select_lmrm_start=False)
 
 
 def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progress | None,

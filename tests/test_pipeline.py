@@ -579,3 +579,19 @@ def test_every_eval_table_is_described_and_valid():
         settle_fraction=0.0, settle_photo_loss="", settle_lr=TTOConfig().settle_lr)
     assert variant_config("pbr", base).alternative_basis == ""  # type: ignore[union-attr]
     assert not variant_config("pbr", base).train_decoder  # type: ignore[union-attr]
+
+
+def test_without_a_trained_lmrm_the_tto_tries_no_start_from_it() -> None:
+    """effective_tto: an LMRM that is not trained gives no anchor (reg "none") and no start to choose
+    (select_lmrm_start off), so a job config asking for that choice still runs instead of failing its TTO check."""
+    from neumatex_core.pipeline import effective_tto
+
+    config = ExtractConfig.preset("tiny")
+    config = replace(config, tto=replace(config.tto, select_lmrm_start=True))
+    trained = effective_tto(config, True)
+    assert trained.select_lmrm_start and trained.reg == "start"
+    untrained = effective_tto(config, False)
+    assert not untrained.select_lmrm_start and untrained.reg == "none"
+    untrained.check()
+    with pytest.raises(ValueError, match="select_lmrm_start"):
+        replace(untrained, select_lmrm_start=True).check()

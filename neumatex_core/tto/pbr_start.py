@@ -543,7 +543,9 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
     (config.select_steps() steps), each result scored on the held-out photos (`photo_psnr`, one seed for both); the
     first (more constrained) candidate stays unless the second gains more than config.select_margin_db. With
     config.select_basis the same two candidates also run in that basis (`in_select_basis`, from the same PBR
-    solution), which is taken when its kept candidate beats the configured basis's by more than select_margin_db.
+    solution), which is taken when its kept candidate beats the configured basis's by more than select_margin_db;
+    with config.select_lmrm_start each basis's two also run from the LMRM's start (`TTOConfig.lmrm_started`), each
+    such side taken when its kept candidate beats the side taken so far by more than select_margin_db (item 98).
     Then the TTO with that choice on every photo, so the result is exactly what the plain TTO with the chosen config
     gives (the held-out photos cost the result nothing: leaving 4 of 23 views out cost a Cycles coat 0.6 dB); or, with
     config.select_reuse_start, its neural phase alone on every photo from the start the choice made (the held-out
@@ -626,16 +628,17 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
         selection.update(start.record)
         # the other sides, in order: the other basis from the same PBR solution (select_basis), then each basis from
         # the LMRM's start (select_lmrm_start); each is taken where its kept candidate beats the side taken so far
-        others: list[tuple[TTOConfig, str, str]] = []  # (config of the side, record prefix, checkpoint suffix)
+        # (config of the side, its basis, record prefix, checkpoint suffix)
+        others: list[tuple[TTOConfig, NeuralBasis, str, str]] = []
         in_other = replace(in_select_basis(config), select_anchor=False, select_uniform=False, select_lmrm_start=False)
-        if config.select_basis:
-            others.append((in_other, "select_basis_", "_other"))
+        other_basis = load_basis(str(first.params.tensor.device), config.select_basis) if config.select_basis else None
+        if other_basis is not None:
+            others.append((in_other, other_basis, "select_basis_", "_other"))
         if config.select_lmrm_start:
-            others.append((plain.lmrm_started(), "select_lmrm_", "_lmrm"))
-            if config.select_basis:
-                others.append((in_other.lmrm_started(), "select_basis_lmrm_", "_other_lmrm"))
-        for k, (side_config, prefix, suffix) in enumerate(others, start=1):
-            side_basis = load_basis(str(first.params.tensor.device), side_config.basis) if side_config.basis else basis
+            others.append((plain.lmrm_started(), basis, "select_lmrm_", "_lmrm"))
+            if other_basis is not None:
+                others.append((in_other.lmrm_started(), other_basis, "select_basis_lmrm_", "_other_lmrm"))
+        for k, (side_config, side_basis, prefix, suffix) in enumerate(others, start=1):
             side_start = neural_start(side_config, first, mesh, envmap, fit_photos, held_photos, tonemap, prediction,
                                       side_basis, anchor_available)  # fmt: skip
             made = candidates_in(choice.candidates(side_config), side_start, config.pbr_steps + 2 * k * steps, suffix)
