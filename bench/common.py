@@ -144,15 +144,15 @@ def write_result(name: str, record: dict[str, Any], device: str = "cpu") -> Path
     return path
 
 
-def prepared_capture(capture: Path, work: Path) -> tuple[Any, Any, Any, Any, Any]:
+def prepared_capture(capture: Path, work: Path, **overrides: Any) -> tuple[Any, Any, Any, Any, Any]:
     """The cpu extract preset's stages before the TTO (validate, prepare_views, lmrm) run on `capture` in `work`
     (idempotent: kept stages are reused), then (the preset, the LMRM prediction, the capture, its mesh, its photos
-    as a PhotoSet)."""
+    as a PhotoSet). `overrides` are ExtractConfig fields (lmrm_weights, lmrm_readout: another LMRM)."""
     from neumatex_core.capture import load_capture
     from neumatex_core.pipeline import ExtractConfig, load_prediction, run_stage
     from neumatex_core.tto.data import PhotoSet
 
-    config = ExtractConfig.preset("cpu", device="cpu")
+    config = ExtractConfig.preset("cpu", device="cpu", **overrides)
     for stage in ("validate", "prepare_views", "lmrm"):
         run_stage(stage, capture, work, config)
     prediction, _ = load_prediction(work)

@@ -19,7 +19,9 @@ Cycles itself at 256 spp, so both rows carry the same Cycles noise (it adds the 
 difference understates the clean one); the difference is the figure. Each capture's scores are kept in
 <work>/<capture name>/scores.json, so an interrupted run resumes (`--again` recomputes them). `--variants
 pbr,neural,ours_pbr_start_no_reg` adds a `neumatex eval` variant (here the neural TTO from the PBR start without a
-regulariser; only the missing variants are run), each compared with the PBR baseline.
+regulariser; only the missing variants are run), each compared with the PBR baseline. `--lmrm-weights W
+--lmrm-readout shipped --work DIR` has another LMRM predict (each row records it; a work folder holds one LMRM's
+stages) and also pairs each variant with its stored scores under the shipped LMRM (the rows `--stored` would take).
 
 Clean scores: when a twin capture <capture>.seed1 exists (the same views rendered by Cycles with another --seed and
 the same --pose-seed, as bench/cycles_matrix.sh writes), each render is scored noise-corrected
@@ -67,6 +69,7 @@ from neumatex_core.render.scene import Scene  # noqa: E402
 from neumatex_core.tto.config import TTOConfig  # noqa: E402
 from neumatex_core.tto.pbr_start import solve  # noqa: E402
 
+SHIPPED = "the shipped LMRM"  # by_preset's name for a variant's stored scores under the shipped LMRM
 TWIN_SUFFIX = ".seed1"  # bench/cycles_matrix.sh's second capture of the same views
 # How each side's two halves are averaged in the clean scores: after the tonemap, the robust one with heavy-tailed
 # highlights (docs/design-notes.md, note 48). Kept scores made another way are recomputed.
@@ -111,16 +114,17 @@ def variant_tto(name: str, config: ExtractConfig) -> TTOConfig:
 
 
 def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: int, names: list[str],
-                  out: dict[str, Any]) -> dict[str, Any]:
-    """Add the scores of the variants `names` that `out` (the capture's kept row, or {}) lacks; returns it."""
-    config, pred, cap, mesh, photos = prepared_capture(capture, work)
+                  out: dict[str, Any], lmrm: dict[str, str] | None = None) -> dict[str, Any]:
+    """Add the scores of the variants `names` that `out` (the capture's kept row, or {}) lacks; returns it. `lmrm`:
+    ExtractConfig's lmrm_weights / lmrm_readout where another LMRM than the shipped one predicts (kept in the row)."""
+    config, pred, cap, mesh, photos = prepared_capture(capture, work, **(lmrm or {}))
     variants = {name: variant_tto(name, config) for name in names if name not in out}
     held_out = capture / "photos"
     n_photos = len(load_capture(held_out).frames)
     relit = sorted(p for p in (capture / "relight").glob("*") if (p / "transforms.json").is_file())
     record = json.loads((capture / "cycles.json").read_text())
     out.update({"capture": str(capture), "preset": record["preset"], "mesh": record["mesh"]["source"],
-                "recipe": config.tto_config().to_dict()})  # fmt: skip
+                "recipe": config.tto_config().to_dict(), **({"lmrm": lmrm} if lmrm else {})})  # fmt: skip
     for name, tto in variants.items():
         t0 = time.perf_counter()
         result = solve(tto, mesh, harness_envmap(cap), photos, cap.tonemap, pred, load_basis(basis_id=tto.basis),
@@ -149,13 +153,14 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
 
 def stored_rows(cpu_model: str) -> dict[str, dict[str, Any]]:
     """Per capture path, its row in the latest line of bench/results/cycles_extract.jsonl that holds it and was
-    written on a machine whose CPU model is `cpu_model` (a later line's row carries the earlier rows' kept scores)."""
+    written on a machine whose CPU model is `cpu_model` (a later line's row carries the earlier rows' kept scores),
+    with the shipped LMRM."""
     path = RESULTS_DIR / "cycles_extract.jsonl"
     out: dict[str, dict[str, Any]] = {}
     for line in path.read_text().splitlines() if path.is_file() else []:
         record = json.loads(line)
-        if record.get("machine", {}).get("cpu_model") == cpu_model:
-            out.update({row["capture"]: row for row in record.get("rows", [])})
+        if record.get("machine", {}).get("cpu_model") == cpu_model:  # the shipped LMRM's rows only
+            out.update({row["capture"]: row for row in record.get("rows", []) if "lmrm" not in row})
     return out
 
 
@@ -177,6 +182,10 @@ def main() -> int:
     parser.add_argument("--again", action="store_true", help="recompute scores kept from an earlier run")
     parser.add_argument("--stored", action="store_true",
                         help="where no scores are kept, start from the capture's latest stored row (this CPU model's)")
+    parser.add_argument("--lmrm-weights", default="",
+                        help="an LMRM .safetensors (its .json beside it) instead of the shipped one (give --work too)")
+    parser.add_argument("--lmrm-readout", default="",
+                        help="an LMRM .safetensors, or 'shipped', whose decoders read the LMRM's prediction")
     parser.add_argument("--variants", default="pbr,neural",
                         help="TTO variants, comma separated: pbr (the baseline), neural (the extraction's default) "
                              "and any `neumatex eval` variant (eval/variants.py); each is compared with pbr")
@@ -185,12 +194,18 @@ def main() -> int:
     unknown = [v for v in names if v != "neural" and v not in EVAL_VARIANTS]
     if unknown or "pbr" not in names:
         parser.error(f"--variants: unknown {unknown} or no pbr (variants: neural, {', '.join(EVAL_VARIANTS)})")
+    lmrm = {k: v for k, v in (("lmrm_weights", args.lmrm_weights), ("lmrm_readout", args.lmrm_readout)) if v}
+    if lmrm and args.stored:
+        parser.error("--stored pairs with the shipped LMRM's rows: not with --lmrm-weights or --lmrm-readout")
     torch.set_num_threads(args.threads)
     rows = []
     stored = stored_rows(cpu_model()) if args.stored else {}
     for capture in args.captures:
         kept = args.work / capture.name / "scores.json"
         row = json.loads(kept.read_text()) if kept.is_file() and not args.again else dict(stored.get(str(capture), {}))
+        if row and row.get("lmrm", {}) != lmrm:  # the work folder's stages hold another LMRM's prediction
+            parser.error(f"{kept}: scored with LMRM {row.get('lmrm') or 'shipped'}, not {lmrm or 'shipped'}: give "
+                         "another --work")  # fmt: skip
         if "recipe" in row and TTOConfig.from_dict(row["recipe"]) != ExtractConfig.preset("cpu").tto_config():
             row.pop("neural", None)  # kept from an extraction default that has changed since: "neural" is run again
         for name in [n for n in names if "relit_clean_db" in row.get(n, {})]:
@@ -198,7 +213,7 @@ def main() -> int:
                 row.pop(name)  # clean scores averaged another way: not comparable, run again
         if any(name not in row for name in names):
             row = bench_capture(capture, args.work / capture.name, args.spp, args.max_bounces, args.clean_spp, names,
-                                row)  # fmt: skip
+                                row, lmrm)  # fmt: skip
             write_json_atomic(kept, row)
         rows.append(row)
         p = row["pbr"]
@@ -210,18 +225,26 @@ def main() -> int:
                   f"({n[ph] - p[ph]:+.2f}); relit {name} {n[re]:.2f}, PBR {p[re]:.2f} ({n[re] - p[re]:+.2f}); "
                   f"TTO {n['tto_s']:.0f} s / {p['tto_s']:.0f} s", flush=True)
     summary = {name: by_preset(rows, name) for name in names if name != "pbr"}
-    print(f"appended to {write_result('cycles_extract', {'spp': args.spp, 'rows': rows, 'by_preset': summary})}")
+    if lmrm:  # each variant also against itself under the shipped LMRM, where this CPU model's rows have it
+        shipped = stored_rows(cpu_model())
+        for name in names:
+            paired = [{"capture": r["capture"], "preset": r.get("preset", "?"), name: r[name],
+                       SHIPPED: shipped[r["capture"]][name]} for r in rows if name in shipped.get(r["capture"], {})]
+            if paired:
+                summary[f"{name} against {SHIPPED}"] = by_preset(paired, name, SHIPPED)
+    record = {"spp": args.spp, **({"lmrm": lmrm} if lmrm else {}), "rows": rows, "by_preset": summary}
+    print(f"appended to {write_result('cycles_extract', record)}")
     return 0
 
 
-def by_preset(rows: list[dict[str, Any]], variant: str = "neural") -> dict[str, dict[str, Any]]:
-    """Per Principled preset, the mean of each side and the paired `variant` - PBR difference (+- s.e. over
-    captures); prints it as a markdown table and returns it."""
+def by_preset(rows: list[dict[str, Any]], variant: str = "neural", base: str = "pbr") -> dict[str, dict[str, Any]]:
+    """Per Principled preset, the mean of each side and the paired `variant` - `base` difference (+- s.e. over
+    captures; each row holds both under those keys); prints it as a markdown table and returns it."""
     out: dict[str, dict[str, Any]] = {}
-    keys = ("photos_clean_db", "relit_clean_db") if all("relit_clean_db" in r[variant] for r in rows) else \
-        ("photos_db", "relit_db")
-    print(f"{variant} against pbr; scores: {', '.join(keys)}")
-    print(f"| preset (captures) | photos: {variant} / PBR | difference | relit: {variant} / PBR | difference |")
+    clean = all("relit_clean_db" in r[variant] and "relit_clean_db" in r[base] for r in rows)
+    keys = ("photos_clean_db", "relit_clean_db") if clean else ("photos_db", "relit_db")
+    print(f"{variant} against {base}; scores: {', '.join(keys)}")
+    print(f"| preset (captures) | photos: {variant} / {base} | difference | relit: {variant} / {base} | difference |")
     print("|---|---|---|---|---|")
     for preset in sorted({r.get("preset", "?") for r in rows}):
         group = [r for r in rows if r.get("preset", "?") == preset]
@@ -229,7 +252,7 @@ def by_preset(rows: list[dict[str, Any]], variant: str = "neural") -> dict[str, 
         cells = []
         for key in keys:
             n = np.array([r[variant][key] for r in group])
-            p = np.array([r["pbr"][key] for r in group])
+            p = np.array([r[base][key] for r in group])
             d = n - p
             se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
             entry[key] = {"neural": float(n.mean()), "pbr": float(p.mean()), "diff": float(d.mean()), "se": se,

@@ -361,3 +361,55 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
     assert margins["margin 5"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0}
     assert margins["pbr_start"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0}
     assert margins["lmrm_start"]["psnr_pathtrace_clean"] == {"test-000000": 36.0, "test-000001": 35.0}
+
+
+def test_the_cycles_benchmark_keeps_another_lmrms_scores_apart_and_pairs_them_with_the_shipped_ones(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    # bench/cycles_extract.py --lmrm-weights: rows scored under another LMRM say so, are never taken as the shipped
+    # LMRM's stored rows, are refused from a work folder whose stages hold another LMRM's prediction, and each variant
+    # is paired per capture with its stored scores under the shipped LMRM.
+    import json
+
+    cycles = bench_module("cycles_extract")
+    monkeypatch.setattr(cycles, "RESULTS_DIR", tmp_path)
+    cand = {"lmrm_weights": "cand.safetensors", "lmrm_readout": "shipped"}
+
+    def row(capture: str, preset: str, photos: float, relit: float, **extra: Any) -> dict[str, Any]:
+        scores = {"photos_clean_db": photos, "relit_clean_db": relit}
+        return {"capture": capture, "preset": preset, "neural": scores,
+                "pbr": {k: v - 5 for k, v in scores.items()}, **extra}
+
+    model = cycles.cpu_model()
+    lines = [{"machine": {"cpu_model": model}, "rows": [row("a", "coat", 30.0, 28.0), row("b", "coat", 32.0, 30.0)]},
+             {"machine": {"cpu_model": model}, "rows": [row("a", "coat", 99.0, 99.0, lmrm=cand)]},
+             {"machine": {"cpu_model": "another"}, "rows": [row("b", "coat", 77.0, 77.0)]}]
+    (tmp_path / "cycles_extract.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+    stored = cycles.stored_rows(model)
+    assert stored["a"]["neural"]["photos_clean_db"] == 30.0 and stored["b"]["neural"]["photos_clean_db"] == 32.0
+    # the candidate's rows, paired with the shipped LMRM's per capture under SHIPPED
+    ours = [row("a", "coat", 31.0, 28.5), row("b", "coat", 32.0, 31.5)]
+    paired = [{"capture": r["capture"], "preset": r["preset"], "neural": r["neural"],
+               cycles.SHIPPED: stored[r["capture"]]["neural"]} for r in ours]
+    table = cycles.by_preset(paired, "neural", cycles.SHIPPED)["coat"]
+    photos = table["photos_clean_db"]
+    assert photos["diff"] == pytest.approx(0.5) and photos["se"] == pytest.approx(0.5)
+    assert table["relit_clean_db"]["diff"] == pytest.approx(1.0) and table["relit_clean_db"]["worst"] == 0.5
+    assert f"neural against {cycles.SHIPPED}" in capsys.readouterr().out
+    assert cycles.by_preset(ours)["coat"]["relit_clean_db"]["diff"] == pytest.approx(5.0)  # against pbr as before
+    # a work folder scored with the shipped LMRM is refused to a candidate, and the other way round
+    kept = tmp_path / "work" / "a" / "scores.json"
+    kept.parent.mkdir(parents=True)
+    kept.write_text(json.dumps(row("a", "coat", 30.0, 28.0)))
+    args = ["cycles_extract.py", "--work", str(tmp_path / "work"), str(tmp_path / "a")]
+    for extra, kept_row in (([], row("a", "coat", 30.0, 28.0, lmrm=cand)),
+                            (["--lmrm-weights", "cand.safetensors", "--lmrm-readout", "shipped"],
+                             row("a", "coat", 30.0, 28.0))):
+        kept.write_text(json.dumps(kept_row))
+        monkeypatch.setattr(sys, "argv", args[:1] + extra + args[1:])
+        with pytest.raises(SystemExit) as stop:
+            cycles.main()
+        assert stop.value.code == 2 and "give another --work" in capsys.readouterr().err
+    monkeypatch.setattr(sys, "argv", args[:1] + ["--stored", "--lmrm-weights", "x"] + args[1:])
+    with pytest.raises(SystemExit):
+        cycles.main()
+    assert "--stored pairs with the shipped LMRM" in capsys.readouterr().err
