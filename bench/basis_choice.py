@@ -115,10 +115,11 @@ def flat(scores: dict[str, Any]) -> dict[str, Any]:
             **{f"choice_{k}": v for k, v in scores.get("selection", {}).items()}}
 
 
-def cycles_table(variant: str, sides: tuple[str, str], before: str = "") -> dict[str, Any]:
-    """The choice on every Cycles capture with rows of both sides and PBR: per preset the choice minus each side,
-    minus PBR and (`before`, where its sides have rows) minus that choice (mean +- s.e. over meshes), and which
-    basis each capture took."""
+def cycles_choices(variant: str, sides: tuple[str, str],
+                   before: str = "") -> tuple[dict[str, list[dict[str, float]]], dict[str, str], dict[str, Any]]:
+    """The choice on every Cycles capture with rows of both sides and PBR: (per preset, each capture's differences:
+    the choice minus each side, minus PBR and (`before`, where its sides have rows) minus that choice; capture ->
+    the side it took; capture -> the choice's scores (CYCLES_METRICS))."""
     latest = cycles_latest()
     before_sides = basis_sides(before) if before else None
     for side in {*sides, *(before_sides or ())}:  # its own rows first, else its stand-in's; without the alternative
@@ -135,12 +136,14 @@ def cycles_table(variant: str, sides: tuple[str, str], before: str = "") -> dict
                       & {c for c, v in latest if v == "pbr"})
     per: dict[str, list[dict[str, float]]] = {}
     took: dict[str, str] = {}
+    scores: dict[str, Any] = {}
     for capture in captures:
         a, b, pbr = flat(latest[(capture, own)]), flat(latest[(capture, sides[1])]), latest[(capture, "pbr")]
         chosen = basis_choice_result(variant, a, b)
         if chosen is None:
             continue
         took[capture] = sides[1] if chosen["choice_select_basis_taken"] else own
+        scores[capture] = {m: chosen[m] for m in CYCLES_METRICS}
         earlier = None
         if before_sides and all((capture, side) in latest for side in before_sides):
             earlier = basis_choice_result(before, *(flat(latest[(capture, side)]) for side in before_sides))
@@ -152,6 +155,14 @@ def cycles_table(variant: str, sides: tuple[str, str], before: str = "") -> dict
             if earlier is not None:
                 diffs[f"{m} - before"] = chosen[m] - earlier[m]
         per.setdefault(capture.rsplit("-", 1)[-1], []).append(diffs)
+    return per, took, scores
+
+
+def cycles_table(variant: str, sides: tuple[str, str], before: str = "") -> dict[str, Any]:
+    """`cycles_choices` printed and summed up: per preset the mean +- s.e. over meshes of each difference, and which
+    basis each capture took."""
+    per, took, _ = cycles_choices(variant, sides, before)
+    own = sides[0]
     stand_ins = [n for n in (CYCLES_STAND_IN.get(own), *start_stand_ins(own)) if n]
     print(f"\n{variant} on the Cycles captures (clean; {own} (where it has no row, "
           f"{' or '.join(stand_ins) or 'none'}) and {sides[1]} the sides)")

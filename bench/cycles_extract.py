@@ -21,7 +21,8 @@ difference understates the clean one); the difference is the figure. Each captur
 pbr,neural,ours_pbr_start_no_reg` adds a `neumatex eval` variant (here the neural TTO from the PBR start without a
 regulariser; only the missing variants are run), each compared with the PBR baseline. `--lmrm-weights W
 --lmrm-readout shipped --work DIR` has another LMRM predict (each row records it; a work folder holds one LMRM's
-stages) and also pairs each variant with its stored scores under the shipped LMRM (the rows `--stored` would take).
+stages), writes its line to bench/results/cycles_extract_lmrm.jsonl and pairs each variant with its latest scores
+under the shipped LMRM (the extraction's default as bench/basis_choice.py reads it).
 
 Clean scores: when a twin capture <capture>.seed1 exists (the same views rendered by Cycles with another --seed and
 the same --pose-seed, as bench/cycles_matrix.sh writes), each render is scored noise-corrected
@@ -58,8 +59,8 @@ from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
 from neumatex_core.eval.harness import _render_psnr  # noqa: E402
 from neumatex_core.eval.references import CLEAN_TAG, clean_psnr, coverage_mask, half_seed, harness_envmap  # noqa: E402
+from neumatex_core.eval.variants import DEFAULT_VARIANT, variant_config  # noqa: E402
 from neumatex_core.eval.variants import VARIANTS as EVAL_VARIANTS  # noqa: E402
-from neumatex_core.eval.variants import variant_config  # noqa: E402
 from neumatex_core.imageio import read_image  # noqa: E402
 from neumatex_core.materials.field import MaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
@@ -151,16 +152,45 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
     return out
 
 
+def against_shipped(rows: list[dict[str, Any]], names: list[str],
+                    shipped: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Each variant of `names` in `rows` (another LMRM's) against its scores under the shipped LMRM (`shipped`, as
+    `shipped_scores` gives them), per preset over the captures both have (`by_preset`, printed)."""
+    out = {}
+    for name in names:
+        paired = [{"capture": r["capture"], "preset": r.get("preset", "?"), name: r[name],
+                   SHIPPED: shipped[r["capture"]][name]} for r in rows if name in shipped.get(r["capture"], {})]
+        if paired:
+            out[f"{name} against {SHIPPED}"] = by_preset(paired, name, SHIPPED)
+    return out
+
+
+def shipped_scores() -> dict[str, dict[str, Any]]:
+    """capture -> variant -> its latest clean scores under the shipped LMRM in bench/results/cycles_extract.jsonl
+    (`basis_choice.cycles_latest`), "neural" being the extraction's default as bench/basis_choice.py reads it from
+    its two bases' sides (`cycles_choices`)."""
+    from basis_choice import cycles_choices, cycles_latest
+    from variants_clean import basis_sides
+
+    out: dict[str, dict[str, Any]] = {}
+    for (capture, name), scores in cycles_latest().items():
+        out.setdefault(capture, {})[name] = scores
+    sides = basis_sides(DEFAULT_VARIANT)
+    if sides is not None:
+        for capture, scores in cycles_choices(DEFAULT_VARIANT, sides)[2].items():
+            out.setdefault(capture, {})["neural"] = scores
+    return out
+
+
 def stored_rows(cpu_model: str) -> dict[str, dict[str, Any]]:
     """Per capture path, its row in the latest line of bench/results/cycles_extract.jsonl that holds it and was
-    written on a machine whose CPU model is `cpu_model` (a later line's row carries the earlier rows' kept scores),
-    with the shipped LMRM."""
+    written on a machine whose CPU model is `cpu_model` (a later line's row carries the earlier rows' kept scores)."""
     path = RESULTS_DIR / "cycles_extract.jsonl"
     out: dict[str, dict[str, Any]] = {}
     for line in path.read_text().splitlines() if path.is_file() else []:
         record = json.loads(line)
-        if record.get("machine", {}).get("cpu_model") == cpu_model:  # the shipped LMRM's rows only
-            out.update({row["capture"]: row for row in record.get("rows", []) if "lmrm" not in row})
+        if record.get("machine", {}).get("cpu_model") == cpu_model:
+            out.update({row["capture"]: row for row in record.get("rows", [])})
     return out
 
 
@@ -225,15 +255,11 @@ def main() -> int:
                   f"({n[ph] - p[ph]:+.2f}); relit {name} {n[re]:.2f}, PBR {p[re]:.2f} ({n[re] - p[re]:+.2f}); "
                   f"TTO {n['tto_s']:.0f} s / {p['tto_s']:.0f} s", flush=True)
     summary = {name: by_preset(rows, name) for name in names if name != "pbr"}
-    if lmrm:  # each variant also against itself under the shipped LMRM, where this CPU model's rows have it
-        shipped = stored_rows(cpu_model())
-        for name in names:
-            paired = [{"capture": r["capture"], "preset": r.get("preset", "?"), name: r[name],
-                       SHIPPED: shipped[r["capture"]][name]} for r in rows if name in shipped.get(r["capture"], {})]
-            if paired:
-                summary[f"{name} against {SHIPPED}"] = by_preset(paired, name, SHIPPED)
+    if lmrm:
+        summary.update(against_shipped(rows, names, shipped_scores()))
     record = {"spp": args.spp, **({"lmrm": lmrm} if lmrm else {}), "rows": rows, "by_preset": summary}
-    print(f"appended to {write_result('cycles_extract', record)}")
+    # another LMRM's lines go to their own file: the readers of cycles_extract.jsonl take its rows as the shipped's
+    print(f"appended to {write_result('cycles_extract_lmrm' if lmrm else 'cycles_extract', record)}")
     return 0
 
 

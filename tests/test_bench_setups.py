@@ -365,45 +365,48 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
 
 def test_the_cycles_benchmark_keeps_another_lmrms_scores_apart_and_pairs_them_with_the_shipped_ones(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    # bench/cycles_extract.py --lmrm-weights: rows scored under another LMRM say so, are never taken as the shipped
-    # LMRM's stored rows, are refused from a work folder whose stages hold another LMRM's prediction, and each variant
-    # is paired per capture with its stored scores under the shipped LMRM.
+    # bench/cycles_extract.py --lmrm-weights: each variant is paired per capture with its latest scores under the
+    # shipped LMRM, the default ("neural") read from its two bases' sides as bench/basis_choice.py reads it; a work
+    # folder whose stages hold another LMRM's prediction is refused; --stored is the shipped LMRM's.
     import json
 
     cycles = bench_module("cycles_extract")
-    monkeypatch.setattr(cycles, "RESULTS_DIR", tmp_path)
-    cand = {"lmrm_weights": "cand.safetensors", "lmrm_readout": "shipped"}
+    choice = bench_module("basis_choice")
+    monkeypatch.setattr(choice, "RESULTS_DIR", tmp_path)
+    own, other = bench_module("variants_clean").basis_sides(cycles.DEFAULT_VARIANT)
 
-    def row(capture: str, preset: str, photos: float, relit: float, **extra: Any) -> dict[str, Any]:
-        scores = {"photos_clean_db": photos, "relit_clean_db": relit}
-        return {"capture": capture, "preset": preset, "neural": scores,
-                "pbr": {k: v - 5 for k, v in scores.items()}, **extra}
+    def scores(photos: float, relit: float, held_out: float | None = None) -> dict[str, Any]:
+        picked = {"selection": {"uniform_kept": 0.0, "validation_photos": 4.0, "validation_psnr_uniform": 0.0,
+                                "validation_psnr_textured": held_out}} if held_out is not None else {}
+        return {"photos_clean_db": photos, "relit_clean_db": relit, **picked}
 
-    model = cycles.cpu_model()
-    lines = [{"machine": {"cpu_model": model}, "rows": [row("a", "coat", 30.0, 28.0), row("b", "coat", 32.0, 30.0)]},
-             {"machine": {"cpu_model": model}, "rows": [row("a", "coat", 99.0, 99.0, lmrm=cand)]},
-             {"machine": {"cpu_model": "another"}, "rows": [row("b", "coat", 77.0, 77.0)]}]
-    (tmp_path / "cycles_extract.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
-    stored = cycles.stored_rows(model)
-    assert stored["a"]["neural"]["photos_clean_db"] == 30.0 and stored["b"]["neural"]["photos_clean_db"] == 32.0
+    # capture a: the other basis wins on held-out photos by 1 dB, so the default is its scores; capture b: no sides
+    rows = [{"capture": "a", "preset": "coat", "pbr": scores(25.0, 24.0), own: scores(30.0, 28.0, 20.0),
+             other: scores(31.0, 29.5, 21.0)},
+            {"capture": "b", "preset": "coat", "pbr": scores(26.0, 25.0)}]
+    (tmp_path / "cycles_extract.jsonl").write_text(json.dumps({"rows": rows}) + "\n")
+    shipped = cycles.shipped_scores()
+    assert shipped["a"]["neural"] == {"photos_clean_db": 31.0, "relit_clean_db": 29.5}
+    assert shipped["b"]["pbr"]["relit_clean_db"] == 25.0 and "neural" not in shipped["b"]
     # the candidate's rows, paired with the shipped LMRM's per capture under SHIPPED
-    ours = [row("a", "coat", 31.0, 28.5), row("b", "coat", 32.0, 31.5)]
-    paired = [{"capture": r["capture"], "preset": r["preset"], "neural": r["neural"],
-               cycles.SHIPPED: stored[r["capture"]]["neural"]} for r in ours]
-    table = cycles.by_preset(paired, "neural", cycles.SHIPPED)["coat"]
-    photos = table["photos_clean_db"]
-    assert photos["diff"] == pytest.approx(0.5) and photos["se"] == pytest.approx(0.5)
-    assert table["relit_clean_db"]["diff"] == pytest.approx(1.0) and table["relit_clean_db"]["worst"] == 0.5
+    ours = [{"capture": c, "preset": "coat", "neural": scores(p, r), "pbr": scores(p - 5, r - 5)}
+            for c, p, r in (("a", 31.5, 29.0), ("c", 40.0, 40.0))]
+    tables = cycles.against_shipped(ours, ["pbr", "neural"], shipped)
+    assert tables[f"pbr against {cycles.SHIPPED}"]["coat"]["captures"] == ["a"]  # b has no candidate row, c no pair
+    assert tables[f"pbr against {cycles.SHIPPED}"]["coat"]["relit_clean_db"]["diff"] == pytest.approx(0.0)
+    table = tables[f"neural against {cycles.SHIPPED}"]["coat"]
+    assert table["captures"] == ["a"]
+    assert table["photos_clean_db"]["diff"] == pytest.approx(0.5)
+    assert table["relit_clean_db"]["diff"] == pytest.approx(-0.5)
     assert f"neural against {cycles.SHIPPED}" in capsys.readouterr().out
     assert cycles.by_preset(ours)["coat"]["relit_clean_db"]["diff"] == pytest.approx(5.0)  # against pbr as before
     # a work folder scored with the shipped LMRM is refused to a candidate, and the other way round
+    cand = {"lmrm_weights": "cand.safetensors", "lmrm_readout": "shipped"}
     kept = tmp_path / "work" / "a" / "scores.json"
     kept.parent.mkdir(parents=True)
-    kept.write_text(json.dumps(row("a", "coat", 30.0, 28.0)))
     args = ["cycles_extract.py", "--work", str(tmp_path / "work"), str(tmp_path / "a")]
-    for extra, kept_row in (([], row("a", "coat", 30.0, 28.0, lmrm=cand)),
-                            (["--lmrm-weights", "cand.safetensors", "--lmrm-readout", "shipped"],
-                             row("a", "coat", 30.0, 28.0))):
+    for extra, kept_row in (([], {**rows[0], "lmrm": cand}),
+                            (["--lmrm-weights", "cand.safetensors", "--lmrm-readout", "shipped"], rows[0])):
         kept.write_text(json.dumps(kept_row))
         monkeypatch.setattr(sys, "argv", args[:1] + extra + args[1:])
         with pytest.raises(SystemExit) as stop:
