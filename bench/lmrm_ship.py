@@ -22,7 +22,9 @@ start and the PBR start (design note 98); with `--margins 0,0.25,...` it also pr
 start only where that start's best held-out score beats the PBR start's by more than each margin (dB). That needs
 both starts' results per object: the side the choice took is its own result, the other is the PBR start's
 (`default_choose_v6_alone`) or the LMRM's (`default_lmrm_start_full`) run in the new folders under the same LMRM
-(each side of the choice is that run's, bit for bit). Appends one JSON line to bench/results/lmrm_ship.jsonl.
+(each side of the choice is that run's, bit for bit). It also prints each start alone against today's on every
+object that has it: its side of the choice, or its plain run where no choice ran. Appends one JSON line to
+bench/results/lmrm_ship.jsonl.
 """
 
 from __future__ import annotations
@@ -119,15 +121,20 @@ def sides_of(folders: list[Path], variant: str) -> dict[str, dict[str, Any]]:
     return out
 
 
-def with_margins(res: Results, sides: dict[str, dict[str, Any]], margins: list[float]) -> Results:
+def with_margins(res: Results, sides: dict[str, dict[str, Any]], margins: list[float],
+                 folders: list[Path] | None = None) -> Results:
     """`res` with a row "margin <m>" per margin: per object the LMRM start's result where its best held-out score
     beats the PBR start's by more than m dB, else the PBR start's (`sides_of`); and each start alone ("pbr_start",
-    "lmrm_start")."""
+    "lmrm_start"): its side of the choice, and on the objects the choice did not run on that start's plain run in
+    `folders` (the first folder that has it)."""
     out = dict(res)
-    for start in SIDES:
-        out[start] = {m: {obj: v for obj, side in sides.items()
-                          if isinstance(v := side[start][m], (int, float)) and math.isfinite(v)}
-                      for m in METRICS}  # fmt: skip
+    for start, (_, plain) in SIDES.items():
+        rows = {obj: {m: rec.get(m) for m in METRICS} for folder in reversed(folders or [])
+                for f in (folder / "results").glob(f"*/{plain}.json") if (obj := f.parent.name) not in sides
+                for rec in [json.loads(f.read_text())]}  # fmt: skip
+        rows |= {obj: side[start] for obj, side in sides.items()}
+        out[start] = {m: {obj: v for obj, row in rows.items() if isinstance(v := row[m], (int, float))
+                          and math.isfinite(v)} for m in METRICS}  # fmt: skip
     for margin in margins:
         out[f"margin {margin:g}"] = {
             m: {obj: v for obj, side in sides.items()
@@ -204,8 +211,14 @@ def main() -> int:
     margins = [float(v) for v in args.margins.split(",") if v.strip()]
     if margins:
         sides = sides_of(new, args.variant)
-        res = with_margins(res, sides, margins)
+        res = with_margins(res, sides, margins, new)
         figs["margins"] = {}
+        for start in SIDES:  # each start alone, also where the choice did not run (its plain run)
+            figs["margins"][start] = {m: pair(res, start, "product", m) for m in METRICS
+                                      if paired_values(res, start, "product", m)}  # fmt: skip
+            print(f"  the {start.replace('_', ' ')} alone (its side of the choice, or its plain run) - today's: "
+                  + "  ".join(f"{m} {f['diff']:+.2f} +- {f['se']:.2f} ({f['ahead']}/{f['n']})"
+                              for m, f in figs["margins"][start].items()))
         print(f"  the LMRM's start taken only where it wins on held-out photos by more than a margin ({len(sides)} "
               "objects with both starts' results):")
         for margin in margins:

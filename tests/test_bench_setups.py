@@ -356,11 +356,15 @@ def test_the_lmrm_ship_benchmark_pairs_the_new_extraction_with_todays_across_sid
     sides = bench.sides_of([choose.parents[1]], "default_choose_lmrm_start")
     assert set(sides) == {"test-000000", "test-000001"}  # object 2 lacks the PBR start's plain run
     assert sides["test-000000"]["gap"] == pytest.approx(3.0) and sides["test-000001"]["gap"] == pytest.approx(-1.0)
-    margins = bench.with_margins({}, sides, [0.0, 5.0])
+    result("test-000003", bench.DEFAULT_VARIANT, 31.0)  # no choice ran there: the PBR start alone is its plain run
+    margins = bench.with_margins({}, sides, [0.0, 5.0], [choose.parents[1]])
     assert margins["margin 0"]["psnr_pathtrace_clean"] == {"test-000000": 36.0, "test-000001": 30.0}
     assert margins["margin 5"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0}
-    assert margins["pbr_start"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0}
+    assert margins["pbr_start"]["psnr_pathtrace_clean"] == {"test-000000": 33.0, "test-000001": 30.0,
+                                                            "test-000003": 31.0}
     assert margins["lmrm_start"]["psnr_pathtrace_clean"] == {"test-000000": 36.0, "test-000001": 35.0}
+    assert bench.with_margins({}, sides, [])["pbr_start"]["psnr_pathtrace_clean"] == {"test-000000": 33.0,
+                                                                                       "test-000001": 30.0}
 
 
 def test_the_cycles_benchmark_keeps_another_lmrms_scores_apart_and_pairs_them_with_the_shipped_ones(
