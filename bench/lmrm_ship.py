@@ -95,26 +95,31 @@ def chosen(res: Results, new_held: dict[str, float], product_held: dict[str, flo
     return {**res, "chosen": rows}
 
 
+def first_records(folders: list[Path], name: str) -> dict[str, dict[str, Any]]:
+    """object -> its `name` result (results/<object>/<name>.json) in the first of `folders` that has one."""
+    out: dict[str, dict[str, Any]] = {}
+    for folder in folders:
+        for f in sorted((folder / "results").glob(f"*/{name}.json")):
+            if f.parent.name not in out:
+                out[f.parent.name] = json.loads(f.read_text())
+    return out
+
+
 def sides_of(folders: list[Path], variant: str) -> dict[str, dict[str, Any]]:
     """object -> {"gap": the LMRM start's best held-out PSNR - the PBR start's (dB), "pbr_start" / "lmrm_start":
     {metric: value}} for each object of `variant` (a choice with select_lmrm_start) whose two sides' results are
     known: the side it took (gap > 0) is its own result, the other that side's plain run (`SIDES`) in `folders`
     (the first folder that has it)."""
-    def record(obj: str, name: str) -> dict[str, Any] | None:
-        return next((json.loads(f.read_text()) for folder in folders
-                     if (f := folder / "results" / obj / f"{name}.json").is_file()), None)  # fmt: skip
-
+    plain_runs = {side: first_records(folders, name) for side, (_, name) in SIDES.items()}
     out: dict[str, dict[str, Any]] = {}
-    for obj in sorted({f.parent.name for folder in folders for f in (folder / "results").glob(f"*/{variant}.json")}):
-        chose = record(obj, variant)
-        assert chose is not None
+    for obj, chose in sorted(first_records(folders, variant).items()):
         best = {side: max(float(chose[f"choice_{p}psnr_{c}"]) for p in prefixes for c in ("textured", "uniform")
                           if f"choice_{p}psnr_{c}" in chose)
                 for side, (prefixes, _) in SIDES.items()}  # fmt: skip
         gap = best["lmrm_start"] - best["pbr_start"]
         taken = "lmrm_start" if gap > 0 else "pbr_start"
         other = next(side for side in SIDES if side != taken)
-        plain = record(obj, SIDES[other][1])
+        plain = plain_runs[other].get(obj)
         if plain is not None:
             out[obj] = {"gap": gap, taken: {m: chose.get(m) for m in METRICS},
                         other: {m: plain.get(m) for m in METRICS}}
@@ -129,9 +134,7 @@ def with_margins(res: Results, sides: dict[str, dict[str, Any]], margins: list[f
     `folders` (the first folder that has it)."""
     out = dict(res)
     for start, (_, plain) in SIDES.items():
-        rows = {obj: {m: rec.get(m) for m in METRICS} for folder in reversed(folders or [])
-                for f in (folder / "results").glob(f"*/{plain}.json") if (obj := f.parent.name) not in sides
-                for rec in [json.loads(f.read_text())]}  # fmt: skip
+        rows = {obj: {m: rec.get(m) for m in METRICS} for obj, rec in first_records(folders or [], plain).items()}
         rows |= {obj: side[start] for obj, side in sides.items()}
         out[start] = {m: {obj: v for obj, row in rows.items() if isinstance(v := row[m], (int, float))
                           and math.isfinite(v)} for m in METRICS}  # fmt: skip
