@@ -191,10 +191,12 @@ def test_cancel_during_tto_stops_within_seconds_and_retry_resumes(service: Servi
     worker = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        j = submit(c, cap["id"], tto={"steps": 30, "checkpoint_every": 2})
-        wait_in_tto(c, j["id"], 5 / 30, "TTO step 5")
+        # 1000 steps (about 6 s here): the 25 steps left of a 30-step TTO (0.15 s) now and then ended between the
+        # poll that saw step 5 and the pause below (the CI run of 2026-12-07), and the stage finished, not stopped.
+        j = submit(c, cap["id"], tto={"steps": 1000, "checkpoint_every": 10})
+        wait_in_tto(c, j["id"], 20 / 1000, "TTO step 20")
         # The worker is paused while the cancel lands, so the cancel comes between two TTO steps however fast this
-        # machine runs them: unpaused, a 30-step TTO here could end before its next poll saw the cancel.
+        # machine runs them: unpaused, the TTO could end before its next poll saw the cancel.
         with worker.paused():
             t0 = time.monotonic()
             r = c.post(f"/v1/jobs/{j['id']}/cancel")
