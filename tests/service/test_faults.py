@@ -87,8 +87,8 @@ def test_kill9_worker_during_tto_another_worker_finishes(service: Service) -> No
     first = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        # 400 steps (about 7 s here): the poll must see the TTO running, past a checkpoint, before it ends
-        j = submit(c, cap["id"], tto={"steps": 400, "checkpoint_every": 4})
+        # 1000 steps (about 6 s here): the poll must see the TTO running, past a checkpoint, before it ends
+        j = submit(c, cap["id"], tto={"steps": 1000, "checkpoint_every": 4})
         wait_in_tto(c, j["id"], 1 / 4, "a quarter of the TTO")
         before = done_times(service, j["id"])
         assert set(before) == {"validate", "prepare_views", "lmrm"}
@@ -130,8 +130,8 @@ def test_redis_restarted_mid_job_no_job_lost(service: Service) -> None:
     worker = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        # 400 steps (about 7 s here): 24 left a TTO window under a second that the poll missed now and then
-        a = submit(c, cap["id"], tto={"steps": 400})
+        # 1000 steps (about 6 s here): 24 left a TTO window under a second that the poll missed now and then
+        a = submit(c, cap["id"], tto={"steps": 1000})
         wait_in_tto(c, a["id"], 1 / 10, "TTO of job A")
         service.redis.stop()
         b = submit(c, cap["id"])  # accepted while the broker is down: the reaper sends it later
@@ -174,8 +174,8 @@ def test_api_restarted_mid_job_job_finishes(service: Service) -> None:
     worker = service.start_worker()
     with service.client() as c:
         cap = upload(c, capture_zip()).json()
-        # 400 steps (about 7 s here): 20 left a TTO window under a second that the poll missed now and then
-        j = submit(c, cap["id"], tto={"steps": 400})
+        # 1000 steps (about 6 s here): 20 left a TTO window under a second that the poll missed now and then
+        j = submit(c, cap["id"], tto={"steps": 1000})
         wait_in_tto(c, j["id"], 1 / 30, "TTO")
     service.restart_api()
     with service.client() as c:
