@@ -23,7 +23,7 @@ from .postgres import Postgres
 from .s3server import moto_server
 
 STAGES = ("validate", "prepare_views", "lmrm", "tto", "export")
-TTO_STEPS = 200  # long enough (~10 s on the tiny preset) that the kill lands mid-TTO on a quiet machine too
+TTO_STEPS = 500  # long enough (about 4 s on the tiny preset; 200 took 2-3 s in 2026-12) that the kill lands mid-TTO
 
 
 def own_folders(root: Path) -> dict[str, str]:
