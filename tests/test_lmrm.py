@@ -33,7 +33,7 @@ from neumatex_core.lmrm.data import Augment, LMRMDataset, load_synth_object
 from neumatex_core.lmrm.inference import DEFAULT_RECORD, DEFAULT_WEIGHTS
 from neumatex_core.lmrm.losses import MSE_FLOOR, beta_nll, object_weights
 from neumatex_core.lmrm.model import IN_CHANNELS, RATIO_INPUT, RATIO_MAX, angle_bin, lift_binned, lift_to_planes
-from neumatex_core.lmrm.train import TrainLMRMConfig, train_lmrm
+from neumatex_core.lmrm.train import TrainLMRMConfig, init_minutes, train_lmrm
 from neumatex_core.materials.neural_basis import load_basis
 from neumatex_core.synth import SynthConfig, generate
 
@@ -357,8 +357,26 @@ def test_training_is_deterministic_and_resumes_exactly(tiny_data, tmp_path):
     assert full.finished and full.steps_done == 4
     cut = train_lmrm(tiny_train(tiny_data, tmp_path / "cut", max_minutes=1e-9))
     assert not cut.finished and cut.steps_done == 1
+    # The compute is summed over resumes: say the cut run had taken ten minutes.
+    state = torch.load(tmp_path / "cut" / "checkpoint.pt", weights_only=False)
+    assert state["seconds"] > 0
+    torch.save({**state, "seconds": 600.0}, tmp_path / "cut" / "checkpoint.pt")
     resumed = train_lmrm(tiny_train(tiny_data, tmp_path / "cut"))
     assert resumed.finished and resumed.steps_done == 4
+    training = json.loads((tmp_path / "cut" / "lmrm.json").read_text())["training"]
+    assert training["minutes"] - training["minutes_this_run"] == pytest.approx(10.0, abs=0.011)
+    assert training["minutes_with_init"] == training["minutes"]  # no --init
+    # ... and a run started from those weights adds their lineage.
+    train_lmrm(tiny_train(tiny_data, tmp_path / "child", steps=1, pbr_steps=1,
+                          init=str(tmp_path / "cut" / "lmrm.safetensors")))  # fmt: skip
+    child = json.loads((tmp_path / "child" / "lmrm.json").read_text())["training"]
+    assert child["minutes_with_init"] == pytest.approx(child["minutes"] + training["minutes_with_init"], abs=0.011)
+    assert init_minutes("") == 0.0 and init_minutes(str(tmp_path / "nowhere.safetensors")) == 0.0
+    old = tmp_path / "old" / "lmrm.safetensors"  # records before the field: their minutes, or their last part's
+    old.parent.mkdir()
+    for training, minutes in (({"minutes": 7.0, "minutes_this_run": 5.0}, 7.0), ({"minutes_this_run": 5.0}, 5.0)):
+        old.with_suffix(".json").write_text(json.dumps({"training": training}))
+        assert init_minutes(str(old)) == minutes
     a = load_file(str(tmp_path / "full" / "lmrm.safetensors"))
     b = load_file(str(tmp_path / "cut" / "lmrm.safetensors"))
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)

@@ -11,7 +11,9 @@
   epoch's object order and the history, so a resumed run continues exactly like an uninterrupted one.
 - Checkpoint `out/checkpoint.pt` every `checkpoint_every` steps and at the end (or at `max_minutes`);
   `out/curves.json` and `out/curves.png`; the final weights `out/lmrm.safetensors` + `out/lmrm.json`, copied
-  into the package with `--install`.
+  into the package with `--install`. The record's "training" says the compute used (issue 14 asks for it next to
+  every shipped checkpoint): wall-clock minutes of this run, of all runs into this `out` (resumes summed; the
+  checkpoint keeps the seconds) and with the `--init` weights' own lineage added (`init_minutes`).
 - Multi-GPU / multi-process: run under torchrun; each rank takes its share of every global batch and
   DistributedDataParallel averages the gradients (gloo on CPU, NCCL on CUDA). Only rank 0 writes files.
 """
@@ -216,6 +218,22 @@ def init_from(net: LMRMNet, weights: Path) -> int:
     return len(matching)
 
 
+def init_minutes(weights: str) -> float:
+    """Wall-clock training minutes behind the `--init` weights (0 without): their record's (lmrm.json beside them)
+    "minutes_with_init", else its "minutes", else its "minutes_this_run" (records before 2026-12-07 count only the
+    last resumed part), else 0 when there is no readable record."""
+    if not weights:
+        return 0.0
+    try:
+        training = json.loads(Path(weights).with_suffix(".json").read_text()).get("training", {})
+    except (OSError, ValueError):
+        return 0.0
+    for key in ("minutes_with_init", "minutes", "minutes_this_run"):
+        if isinstance(training.get(key), int | float):
+            return float(training[key])
+    return 0.0
+
+
 def _to(sample: Sample, device: torch.device) -> Sample:
     s = sample
     s.inputs.inputs, s.inputs.mask = s.inputs.inputs.to(device), s.inputs.mask.to(device)
@@ -304,6 +322,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
     history: list[dict[str, Any]] = []
     validation: list[dict[str, Any]] = []
     step = 0
+    seconds_before = 0.0  # wall-clock seconds of the earlier runs into this checkpoint (resumes)
     ckpt = out / "checkpoint.pt"
     if cfg.init:
         copied = init_from(net, Path(cfg.init))
@@ -319,6 +338,7 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
         opt.load_state_dict(state["optimizer"])
         order.load_state(state["order"])
         history, validation, step = state["history"], state["validation"], int(state["step"])
+        seconds_before = float(state.get("seconds", 0.0))
     model: torch.nn.Module = net
     if world > 1 or dist.is_initialized():
         model = DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
@@ -337,11 +357,14 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
     augment = Augment() if cfg.augment else Augment.none()
     started = time.monotonic()
 
+    def seconds_so_far() -> float:
+        return seconds_before + time.monotonic() - started
+
     def save_checkpoint() -> None:
         if rank != 0:
             return
         state = {"model": net.state_dict(), "ema": ema.state_dict(), "optimizer": opt.state_dict(),
-                 "order": order.state(), "step": step,
+                 "order": order.state(), "step": step, "seconds": seconds_so_far(),
                  "history": history, "validation": validation, "model_config": model_cfg.to_dict(),
                  "train_config": asdict(cfg)}  # fmt: skip
         tmp = ckpt.with_suffix(".tmp")
@@ -406,12 +429,14 @@ def train_lmrm(cfg: TrainLMRMConfig, progress: Callable[[int, int, dict[str, flo
             "validation": validation[-1] if validation else {},
             "training_mean": [round(float(x), 6) for x in mean],
         }  # fmt: skip
+        minutes = seconds_so_far() / 60
         info = {"metrics": metrics, "train_config": asdict(cfg),
                 "data": {"folders": [str(r) for r in roots], "objects": len(order.dataset),
                          "manifest_sha256": order.dataset.manifest_hash(), "validation_ids": val_set.ids},
                 "training": {"world_size": world, "device": str(device),
                              "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
-                             "minutes_this_run": round((time.monotonic() - started) / 60, 2)}}  # fmt: skip
+                             "minutes_this_run": round(minutes - seconds_before / 60, 2), "minutes": round(minutes, 2),
+                             "minutes_with_init": round(minutes + init_minutes(cfg.init), 2)}}  # fmt: skip
         basis = load_basis()
         save_lmrm(ema, out / "lmrm.safetensors", out / "lmrm.json", basis, info)
         if cfg.install:
