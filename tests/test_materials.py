@@ -312,21 +312,15 @@ def albedo_gap(roughness: float, metallic: float, cos_o: float) -> tuple[torch.T
 
 @pytest.mark.parametrize(
     "roughness, metallic, cos_o",
-    [(0.1, 0.0, 0.9), (0.5, 0.0, 0.7), (1.0, 0.0, 0.5), (0.3, 0.0, 0.3), (1.0, 1.0, 0.5)],
+    [(0.1, 0.0, 0.9), (0.5, 0.0, 0.7), (1.0, 0.0, 0.5), (0.3, 0.0, 0.3), (1.0, 1.0, 0.5),
+     (0.3, 1.0, 0.8), (0.7, 1.0, 0.9), (0.3, 0.5, 0.6), (0.05, 1.0, 0.2)],
 )
 def test_analytic_albedo_close_to_monte_carlo(roughness: float, metallic: float, cos_o: float) -> None:
-    """albedo() (Karis' mobile fit of the split-sum environment BRDF) within 0.05 of the MC estimate
-    (0.05 is the fit's accuracy; the MC SE < 0.002 is negligible against it)."""
+    """albedo() (the tabulated albedo of this GGX lobe) within 0.012 of the MC estimate, dielectrics and
+    conductors alike: 5 MC standard errors (< 0.002, asserted) plus the tables' interpolation error (<= 3e-3 at
+    grazing views, albedo_tables). Karis' fit, used before, missed conductors at mid roughness by 0.07-0.14."""
     fit, a = albedo_gap(roughness, metallic, cos_o)
-    assert torch.allclose(fit, a, atol=0.05), (fit, a)
-
-
-@pytest.mark.xfail(strict=True, reason="Karis' mobile fit underestimates our separable-Smith GGX conductor "
-                   "albedo by 0.07-0.14 at mid roughness (needs a table of our own GGX's directional albedo)")
-@pytest.mark.parametrize("roughness, metallic, cos_o", [(0.3, 1.0, 0.8), (0.7, 1.0, 0.9), (0.3, 0.5, 0.6)])
-def test_analytic_albedo_of_conductors(roughness: float, metallic: float, cos_o: float) -> None:
-    fit, a = albedo_gap(roughness, metallic, cos_o)
-    assert torch.allclose(fit, a, atol=0.05), (fit, a)
+    assert torch.allclose(fit, a, atol=0.012), (fit, a)
 
 
 def test_analytic_albedo_of_lambertian() -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import torch
 
+from neumatex_core.materials import albedo_tables
 from neumatex_core.materials.base import Material, cosine_pdf, cosine_sample, luminance
 from neumatex_core.materials.microfacet import (
     ALPHA_MIN,
@@ -97,26 +98,16 @@ class PBRMaterial(Material):
             return torch.where((wi[:, 2] > 0) & (wo[:, 2] > 0), pdf, torch.zeros_like(pdf))
 
     def albedo(self, wo: torch.Tensor) -> torch.Tensor:
-        # Karis' analytic fit of the split-sum GGX directional albedo (Unreal Engine 4, 2013).
-        r = self.roughness.unsqueeze(-1)
-        n_dot_v = wo[:, 2].clamp(0.0, 1.0).unsqueeze(-1)
-        c0 = torch.tensor([-1.0, -0.0275, -0.572, 0.022], device=wo.device)
-        c1 = torch.tensor([1.0, 0.0425, 1.04, -0.04], device=wo.device)
-        rr = r * c0 + c1
-        a004 = torch.minimum(rr[:, 0:1] ** 2, torch.exp2(-9.28 * n_dot_v)) * rr[:, 0:1] + rr[:, 1:2]
-        ab = (
-            a004
-            * torch.cat(
-                [
-                    torch.tensor([-1.04], device=wo.device).expand_as(a004),
-                    torch.tensor([1.04], device=wo.device).expand_as(a004),
-                ],
-                dim=-1,
-            )
-            + rr[:, 2:4]
-        )
-        spec = self.f0 * ab[:, 0:1] + (50.0 * self.f0[:, 1:2]).clamp(0.0, 1.0) * ab[:, 1:2]  # as schlick_fresnel
-        return self.diffuse_albedo + spec
+        """[N, 3] directional albedo at viewer directions wo [N, 3]: the Lambertian part plus this GGX lobe's own
+        tabulated albedo (`albedo_tables`' spec_a / spec_b, exact for the separable Smith G up to ~1e-3; linear in
+        F0 as UE4's Schlick is), the same tables the layered material's specular lobe uses. Karis' analytic fit
+        of the split-sum LUT (which the PBR fallback's fit keeps: assets/pbr_fit.split_sum_albedo) underrates
+        this lobe's conductors by 0.07-0.14 at mid roughness."""
+        mu = wo[:, 2].clamp(0.0, 1.0)
+        spec_a = albedo_tables.lookup("spec_a", mu, self.roughness).unsqueeze(-1)
+        spec_b = albedo_tables.lookup("spec_b", mu, self.roughness).unsqueeze(-1)
+        grazing = (50.0 * self.f0[:, 1:2]).clamp(0.0, 1.0)  # as schlick_fresnel
+        return self.diffuse_albedo + self.f0 * spec_a + grazing * spec_b
 
     def select(self, index: torch.Tensor) -> PBRMaterial:
         return PBRMaterial(self.base_color[index], self.roughness[index], self.metallic[index], self.dielectric_f0)
