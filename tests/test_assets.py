@@ -22,7 +22,7 @@ from neumatex_core.assets import FORMAT_VERSION, AssetError, asset_from_textures
 from neumatex_core.assets.bake import rasterize_uv
 from neumatex_core.assets.export import export_asset
 from neumatex_core.assets.package import read_png8
-from neumatex_core.assets.pbr_fit import fit_targets, pbr_albedo, pbr_targets
+from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_targets, pbr_albedo, pbr_targets
 from neumatex_core.assets.render import make_previews, render_asset
 from neumatex_core.geometry.mesh import load_mesh
 from neumatex_core.imageio import read_image
@@ -251,6 +251,21 @@ def test_pbr_fit_recovers_pbr_materials():
     with torch.no_grad():  # the caller's grad mode changes nothing (a ground truth's G-buffers are read under it)
         again, _ = fit_targets(pbr_targets(truth), pbr_albedo(truth))
     assert torch.equal(again, params)
+
+
+def test_pbr_fit_albedo_terms():
+    """PBRFitConfig.albedo: with the exact albedo ("exact", `PBRMaterial.albedo`) on both sides the fit recovers PBR
+    materials as the shipped term does; "none" is the fit without albedos; the shipped term (Karis' split-sum fit)
+    underrates a mid-roughness conductor's exact albedo, which is what lets the fallback's metals be brighter."""
+    truth = torch.tensor([[0.8, 0.2, 0.1, 0.3, 0.0], [0.9, 0.6, 0.3, 0.5, 1.0], [0.1, 0.1, 0.6, 0.8, 0.0],
+                          [0.5, 0.5, 0.5, 0.15, 1.0]])  # fmt: skip
+    params, loss = fit_targets(pbr_targets(truth), pbr_albedo(truth, "exact"), PBRFitConfig(albedo="exact"))
+    assert float(loss.max()) < 2e-3
+    assert torch.allclose(params[:, 3], truth[:, 3], atol=0.05) and torch.equal(params[:, 4].round(), truth[:, 4])
+    without, _ = fit_targets(pbr_targets(truth), pbr_albedo(truth), PBRFitConfig(albedo="none"))
+    assert torch.equal(without, fit_targets(pbr_targets(truth))[0])
+    gap = pbr_albedo(truth[1:2], "exact") - pbr_albedo(truth[1:2])  # f0 (0.9, 0.6, 0.3), roughness 0.5
+    assert bool((gap > 0.02).all()) and float(gap[..., 0].min()) > 0.09, gap  # in proportion to f0
 
 
 def test_pbr_fit_grid_search_is_the_same_in_any_chunk(basis):

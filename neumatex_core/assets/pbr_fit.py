@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import torch
@@ -53,6 +54,7 @@ ROUGH_MIN = 0.05
 GRID_ROUGHNESS = 20  # log-spaced: sharp lobes need finer steps
 GAUSS_NEWTON = 2
 GRID_METALLIC = 3
+AlbedoModel = Literal["split_sum", "exact", "none"]
 METHOD = ("grid search over roughness x metallic with closed-form base colour, then Adam on the log-space "
           "cosine-weighted BSDF difference over fixed direction pairs (neumatex_core/assets/pbr_fit.py)")
 
@@ -62,6 +64,9 @@ class PBRFitConfig:
     steps: int = 20  # Adam refinement steps after the grid search (0: grid only)
     lr: float = 0.03
     chunk: int = 8192  # distinct materials per batch (memory ~ chunk x K x a few hundred bytes)
+    # The PBR side of the albedo term: "split_sum" (Karis' fit, `split_sum_albedo`: what the renders favour),
+    # "exact" (`PBRMaterial.albedo`) or "none" (no albedo term); bench/assets.py --fit-albedo compares them.
+    albedo: AlbedoModel = "split_sum"
 
 
 def fit_directions() -> tuple[torch.Tensor, torch.Tensor]:
@@ -162,20 +167,22 @@ def split_sum_albedo(mat: PBRMaterial, wo: torch.Tensor) -> torch.Tensor:
     return mat.diffuse_albedo + spec
 
 
-def pbr_albedo(p: torch.Tensor) -> torch.Tensor:
-    """The fit's albedo [M, V, 3] (`split_sum_albedo`) of PBR parameters [M, 5] at the fit's views."""
+def pbr_albedo(p: torch.Tensor, model: AlbedoModel = "split_sum") -> torch.Tensor:
+    """The fit's albedo [M, V, 3] of PBR parameters [M, 5] at the fit's views: `split_sum_albedo`, or with model
+    "exact" `PBRMaterial.albedo`."""
     wo = view_directions().to(p.device)
     m, v = p.shape[0], wo.shape[0]
     rep = p.repeat_interleave(v, 0)
     mat = PBRMaterial(rep[:, :3], rep[:, 3], rep[:, 4])
-    return split_sum_albedo(mat, wo.repeat(m, 1)).view(m, v, 3)
+    wo_r = wo.repeat(m, 1)
+    return (mat.albedo(wo_r) if model == "exact" else split_sum_albedo(mat, wo_r)).view(m, v, 3)
 
 
 def _total_loss(p: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, log_target: torch.Tensor,
-                log_albedo: torch.Tensor | None) -> torch.Tensor:
+                log_albedo: torch.Tensor | None, model: AlbedoModel = "split_sum") -> torch.Tensor:
     loss = _log_loss(_pbr_y(p[:, :3], p[:, 3], p[:, 4], wi, wo), log_target)
     if log_albedo is not None:
-        loss = loss + ALBEDO_WEIGHT * _log_loss(pbr_albedo(p), log_albedo)
+        loss = loss + ALBEDO_WEIGHT * _log_loss(pbr_albedo(p, model), log_albedo)
     return loss
 
 
@@ -197,7 +204,7 @@ def _affine_grid(wi: torch.Tensor, wo: torch.Tensor) -> tuple[torch.Tensor, torc
 
 
 def _grid_search(target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: torch.Tensor | None = None,
-                 chunk: int = 128) -> torch.Tensor:
+                 chunk: int = 128, model: AlbedoModel = "split_sum") -> torch.Tensor:
     """Start parameters [M, 5] for targets y_neural [M, K, 3] (and albedos [M, V, 3]); step 2 of the module
     docstring. `chunk` materials at a time: at 128 its [chunk, 3, G, K] tensors stay in the CPU's cache (5x faster
     than 1024); each material's search is its own, so the chunk changes no bit of the result."""
@@ -212,7 +219,7 @@ def _grid_search(target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albed
     log_t = torch.log(EPS + target).permute(0, 2, 1).unsqueeze(2)  # [M, 3, 1, K]
     if albedo is not None:  # PBR albedo on the grid, affine in a grey base colour b: albedo(0) + b (albedo(1) - ...)
         n_g = grid.shape[0]
-        ends = [pbr_albedo(torch.cat([torch.full((n_g, 3), v, device=grid.device), grid], dim=-1))[..., 0]
+        ends = [pbr_albedo(torch.cat([torch.full((n_g, 3), v, device=grid.device), grid], dim=-1), model)[..., 0]
                 for v in (0.02, 1.0)]  # [G, V] each; from 0.02 up, UE4's grazing factor is 1 as in `_affine_grid`
         alb_a = (ends[1] - ends[0]) / 0.98
         alb_b = ends[0] - 0.02 * alb_a
@@ -272,15 +279,18 @@ def fit_targets(target: torch.Tensor, albedo: torch.Tensor | None = None,
                 cfg: PBRFitConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """PBR parameters [M, 5] (base colour, roughness, metallic; 8-bit exact) and their loss [M] for targets
     y [M, K, 3] at the K pairs of `fit_directions` and (optional) directional albedos [M, V, 3] at the views
-    (steps 2-4 of the module docstring)."""
+    (steps 2-4 of the module docstring; cfg.albedo "none" leaves the albedos out)."""
     cfg = cfg or PBRFitConfig()
+    model = cfg.albedo
+    if model == "none":
+        albedo = None
     wi, wo = (x.to(target.device) for x in fit_directions())
     with torch.no_grad():
         log_target = torch.log(EPS + target)
         log_albedo = None if albedo is None else torch.log(EPS + albedo)
-        start = _grid_search(target, wi, wo, albedo)
+        start = _grid_search(target, wi, wo, albedo, model=model)
         start_q = quantize_pbr(start)
-        start_loss = _total_loss(start_q, wi, wo, log_target, log_albedo)
+        start_loss = _total_loss(start_q, wi, wo, log_target, log_albedo, model)
     if cfg.steps <= 0:
         return start_q, start_loss
 
@@ -299,13 +309,13 @@ def fit_targets(target: torch.Tensor, albedo: torch.Tensor | None = None,
 
     with torch.enable_grad():  # a fit, whatever the caller's grad mode (e.g. a G-buffer written under no_grad)
         for _ in range(cfg.steps):
-            loss = _total_loss(params(), wi, wo, log_target, log_albedo)
+            loss = _total_loss(params(), wi, wo, log_target, log_albedo, model)
             opt.zero_grad()
             loss.sum().backward()
             opt.step()
     with torch.no_grad():
         refined = quantize_pbr(params())
-        refined_loss = _total_loss(refined, wi, wo, log_target, log_albedo)
+        refined_loss = _total_loss(refined, wi, wo, log_target, log_albedo, model)
         better = refined_loss < start_loss
         return (torch.where(better.unsqueeze(-1), refined, start_q), torch.where(better, refined_loss, start_loss))
 
