@@ -15,13 +15,14 @@ xatlas unwrap, bake at `--texture`^2, PBR fit) and measured:
    family. Both sides use next-event estimation with the same seed (one bounce), so their difference is the
    material's, not Monte Carlo noise (design note 10); the triplane against itself with another seed (MIS) is the
    noise floor of independent renders at this spp, printed for scale. Maps: the shared maps in turn.
-3. `--fit-albedo exact,none`: the PBR fallback fitted again with the other albedo terms of the fit
-   (`PBRFitConfig.albedo`; the shipped one is "split_sum", Karis' fit) and rendered the same way, per family, with
-   its difference from the shipped fit paired per object (same renders' seed, same objects).
+3. `--fit-variants "albedo=exact;cosine_directions=6"`: the PBR fallback fitted again with other `PBRFitConfig`
+   settings (each variant a comma list of field=value) and rendered the same way, per family, with its difference
+   from the shipped fit paired per object (same renders' seed, same objects).
 
     .venv/bin/python bench/assets.py             # 40 objects, ~15 min on a busy 2-core CPU
     .venv/bin/python bench/assets.py --quick     # 8 objects (one per family), 128^2 textures
-    .venv/bin/python bench/assets.py --objects 16 --texture 128 --repeats 1 --fit-albedo exact,none  # ~2 min
+    .venv/bin/python bench/assets.py --objects 40 --texture 128 --repeats 1 \
+        --fit-variants "cosine_directions=6;albedo=exact"  # ~10 min
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import statistics
 import sys
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -143,8 +144,20 @@ def io_figures(asset: MaterialAsset, basis: NeuralBasis, repeats: int) -> dict[s
     return out
 
 
+def fit_variant(text: str) -> PBRFitConfig:
+    """A PBRFitConfig from "field=value,field=value" (`--fit-variants`); ValueError naming what is wrong."""
+    known = {f.name: f.type for f in fields(PBRFitConfig)}
+    values: dict[str, Any] = {}
+    for item in (x.strip() for x in text.split(",") if x.strip()):
+        key, _, value = item.partition("=")
+        if key not in known or not value:
+            raise ValueError(f"{item!r}: expected field=value with a field of PBRFitConfig ({', '.join(known)})")
+        values[key] = value if known[key] in ("str", "AlbedoModel") else type(getattr(PBRFitConfig(), key))(value)
+    return PBRFitConfig(**values)
+
+
 def render_figures(asset: MaterialAsset, envmap: EnvironmentMap, resolution: int, spp: int,
-                   fit_albedo: tuple[str, ...] = ()) -> dict[str, float]:
+                   variants: dict[str, PBRFitConfig] | None = None) -> dict[str, float]:
     cams = [preset_views(resolution)[i] for i in VIEWS]
     tm = Tonemap().apply
     masks = [render_gbuffer(asset.mesh, c).mask for c in cams]
@@ -161,10 +174,10 @@ def render_figures(asset: MaterialAsset, envmap: EnvironmentMap, resolution: int
     noise_b = display(render_asset(asset, envmap, cams, mis, "triplane", seed=3))
     out = {"baked_psnr": psnr(baked, neural), "pbr_psnr": psnr(pbr, neural),
            "noise_floor_psnr": psnr(noise_a, noise_b)}
-    for model in fit_albedo:  # the fallback fitted with another albedo term, rendered with the same seed
-        texture, _ = fit_pbr(asset.basis, asset.material_texture, asset.texel_mask, PBRFitConfig(albedo=model))
+    for name, cfg in (variants or {}).items():  # the fallback fitted another way, rendered with the same seed
+        texture, _ = fit_pbr(asset.basis, asset.material_texture, asset.texel_mask, cfg)
         other = display(render_asset(replace(asset, pbr_texture=texture), envmap, cams, light, "pbr", seed=1))
-        out[f"pbr_psnr_{model}"] = psnr(other, neural)
+        out[f"pbr_psnr[{name}]"] = psnr(other, neural)
     return out
 
 
@@ -180,14 +193,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--basis", type=str, default="", help="basis weights .safetensors (record beside it as "
                         ".json); default: the shipped basis")
     parser.add_argument("--quick", action="store_true", help="8 objects (one per family), 128^2 textures, 1 repeat")
-    parser.add_argument("--fit-albedo", type=str, default="", help="other albedo terms of the PBR fit to compare "
-                        "with the shipped one (comma list of exact, none; PBRFitConfig.albedo)")
+    parser.add_argument("--fit-variants", type=str, default="", help="other PBR fallback fits to pair with the "
+                        "shipped one: variants separated by ';', each a comma list of PBRFitConfig field=value")
     parser.add_argument("--no-save", action="store_true")
     args = parser.parse_args(argv)
-    fit_albedo = tuple(m.strip() for m in args.fit_albedo.split(",") if m.strip())
-    unknown = [m for m in fit_albedo if m not in ("exact", "none", "split_sum")]
-    if unknown:
-        parser.error(f"--fit-albedo: unknown albedo term(s) {unknown} (expected exact, none, split_sum)")
+    try:
+        variants = {v.strip(): fit_variant(v) for v in args.fit_variants.split(";") if v.strip()}
+    except (ValueError, TypeError) as exc:
+        parser.error(f"--fit-variants: {exc}")
     if args.quick:
         args.objects, args.texture, args.repeats = len(FAMILIES), 128, 1
     torch.set_num_threads(args.threads)
@@ -207,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         row = {**spec, "envmap": env_name, "vertices": len(asset.mesh.vertices), "faces": asset.mesh.num_faces,
                "build_s": build, "timings": asset.timings, "pbr_fit_loss": asset.pbr_fit_loss,
                **io_figures(asset, basis, args.repeats),
-               **render_figures(asset, envmaps[env_name], args.resolution, args.spp, fit_albedo)}  # fmt: skip
+               **render_figures(asset, envmaps[env_name], args.resolution, args.spp, variants)}  # fmt: skip
         rows.append(row)
         print(f"{spec['name']:34s} {row['faces']:6d} faces  zip {row['zip_bytes'] / 1e6:6.2f} MB  "
               f"write {row['zip_write_s']:.2f}s ({row['zip_write_s'] / row['raw_write_s']:.0f}x raw)  "
@@ -248,24 +261,23 @@ def main(argv: list[str] | None = None) -> int:
     print(f"| all | {statistics.fmean(r['baked_psnr'] for r in rows):.1f} ({min(r['baked_psnr'] for r in rows):.1f}) | "
           f"{statistics.fmean(r['pbr_psnr'] for r in rows):.1f} ({min(r['pbr_psnr'] for r in rows):.1f}) | "
           f"{statistics.fmean(r['pbr_fit_loss'] for r in rows):.4f} | {med('noise_floor_psnr'):.1f} (median) |")
-    if fit_albedo:
-        print("\nThe PBR fallback's render PSNR against the triplane (dB) by the fit's albedo term, per family: mean; "
-              "against the shipped term (split_sum), paired per object: mean +- standard error\n")
-        print("| family | split_sum | " + " | ".join(f"{m} | {m} - split_sum" for m in fit_albedo) + " |")
-        print("|---|---|" + "---|---|" * len(fit_albedo))
+    if variants:
+        print("\nThe PBR fallback's render PSNR against the triplane (dB) by the fit, per family: mean; against the "
+              "shipped fit, paired per object: mean +- standard error\n")
+        print("| family | shipped fit | " + " | ".join(f"{m} | {m} - shipped" for m in variants) + " |")
+        print("|---|---|" + "---|---|" * len(variants))
         for fam in [*FAMILIES, "all"]:
             sel = [r for r in rows if fam in ("all", r["family"])]
             if not sel:
                 continue
             cells = [f"{statistics.fmean(r['pbr_psnr'] for r in sel):.2f}"]
-            for model in fit_albedo:
-                d = [r[f"pbr_psnr_{model}"] - r["pbr_psnr"] for r in sel]
+            for name in variants:
+                key = f"pbr_psnr[{name}]"
+                d = [r[key] - r["pbr_psnr"] for r in sel]
                 se = statistics.stdev(d) / len(d) ** 0.5 if len(d) > 1 else float("nan")
-                cells += [f"{statistics.fmean(r[f'pbr_psnr_{model}'] for r in sel):.2f}",
-                          f"{statistics.fmean(d):+.2f} +- {se:.2f}"]
+                cells += [f"{statistics.fmean(r[key] for r in sel):.2f}", f"{statistics.fmean(d):+.2f} +- {se:.2f}"]
                 if fam != "all":
-                    per_family[fam][f"pbr_psnr_{model}"] = {"mean": statistics.fmean(r[f"pbr_psnr_{model}"]
-                                                                                      for r in sel)}
+                    per_family[fam][key] = {"mean": statistics.fmean(r[key] for r in sel)}
             print(f"| {fam} | " + " | ".join(cells) + " |")
     if not args.no_save:
         record = Path(args.basis).with_suffix(".json") if args.basis else None

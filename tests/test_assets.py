@@ -254,18 +254,47 @@ def test_pbr_fit_recovers_pbr_materials():
 
 
 def test_pbr_fit_albedo_terms():
-    """PBRFitConfig.albedo: with the exact albedo ("exact", `PBRMaterial.albedo`) on both sides the fit recovers PBR
-    materials as the shipped term does; "none" is the fit without albedos; the shipped term (Karis' split-sum fit)
-    underrates a mid-roughness conductor's exact albedo, which is what lets the fallback's metals be brighter."""
+    """PBRFitConfig.albedo: with Karis' split-sum fit on both sides ("split_sum", the term until 2026-12-07) the fit
+    recovers PBR materials as with the exact one (`test_pbr_fit_recovers_pbr_materials`); "none" is the fit without
+    albedos; the split-sum fit underrates a mid-roughness conductor's exact albedo in proportion to its F0."""
     truth = torch.tensor([[0.8, 0.2, 0.1, 0.3, 0.0], [0.9, 0.6, 0.3, 0.5, 1.0], [0.1, 0.1, 0.6, 0.8, 0.0],
                           [0.5, 0.5, 0.5, 0.15, 1.0]])  # fmt: skip
-    params, loss = fit_targets(pbr_targets(truth), pbr_albedo(truth, "exact"), PBRFitConfig(albedo="exact"))
+    split = PBRFitConfig(albedo="split_sum")
+    params, loss = fit_targets(pbr_targets(truth), pbr_albedo(truth, "split_sum"), split)
     assert float(loss.max()) < 2e-3
     assert torch.allclose(params[:, 3], truth[:, 3], atol=0.05) and torch.equal(params[:, 4].round(), truth[:, 4])
     without, _ = fit_targets(pbr_targets(truth), pbr_albedo(truth), PBRFitConfig(albedo="none"))
     assert torch.equal(without, fit_targets(pbr_targets(truth))[0])
-    gap = pbr_albedo(truth[1:2], "exact") - pbr_albedo(truth[1:2])  # f0 (0.9, 0.6, 0.3), roughness 0.5
+    gap = pbr_albedo(truth[1:2]) - pbr_albedo(truth[1:2], "split_sum")  # f0 (0.9, 0.6, 0.3), roughness 0.5
     assert bool((gap > 0.02).all()) and float(gap[..., 0].min()) > 0.09, gap  # in proportion to f0
+
+
+def test_pbr_fit_directions_and_chunks(basis):
+    """The fit's targets must be made for its direction set (a clear error otherwise); the materials' chunk changes
+    no bit of the fallback; more cosine directions per view fit the hemisphere's pairs the old six leave out."""
+    from neumatex_core.assets.pbr_fit import N_COSINE, fit_directions, fit_pbr, neural_albedo, neural_targets
+
+    truth = torch.tensor([[0.8, 0.2, 0.1, 0.3, 0.0], [0.9, 0.6, 0.3, 0.5, 1.0]])
+    with pytest.raises(ValueError, match="direction pairs"):
+        fit_targets(pbr_targets(truth, cosine=6), pbr_albedo(truth), PBRFitConfig(cosine_directions=N_COSINE))
+    assert fit_directions(6)[0].shape[0] < fit_directions(N_COSINE)[0].shape[0]
+    g = torch.Generator().manual_seed(3)
+    latent = torch.rand(6, 5, basis.arch.latent_dim, generator=g) * 2 - 1
+    texture = torch.cat([torch.rand(6, 5, 3, generator=g), latent], dim=-1)
+    whole, loss = fit_pbr(basis, texture)
+    pieces, loss_pieces = fit_pbr(basis, texture, config=PBRFitConfig(chunk=7))
+    assert torch.equal(whole, pieces) and loss == loss_pieces
+    # scored on the dense set, the grid search on it starts better on average than one on the six directions
+    values = texture.reshape(-1, texture.shape[-1])
+    dense = PBRFitConfig(steps=0)
+    target, albedo = neural_targets(basis, values), neural_albedo(basis, values)
+    _, dense_loss = fit_targets(target, albedo, dense)
+    sparse, _ = fit_targets(neural_targets(basis, values, 6), albedo, PBRFitConfig(cosine_directions=6, steps=0))
+    from neumatex_core.assets.pbr_fit import EPS, _total_loss
+
+    wi, wo = fit_directions()
+    sparse_loss = _total_loss(sparse, wi, wo, torch.log(EPS + target), torch.log(EPS + albedo))
+    assert float((sparse_loss - dense_loss).mean()) > 0, (sparse_loss, dense_loss)
 
 
 def test_pbr_fit_grid_search_is_the_same_in_any_chunk(basis):

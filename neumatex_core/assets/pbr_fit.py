@@ -2,13 +2,13 @@
 
 The fit compares cosine-weighted BSDFs, y = f(wi, wo) cos_i (the radiance reflected towards wo under a unit light
 from wi), on a fixed set of K direction pairs shared by all texels: wo at the elevations VIEW_COS (azimuth 0), wi a
-stratified cosine-weighted set of N_COSINE directions (a Fibonacci spiral through `cosine_sample`), the mirror
-direction of wo and directions MIRROR_OFFSETS_DEG around it (in and out of the plane of incidence), where glossy
-lobes live, and wo itself with directions RETRO_OFFSETS_DEG around it, where dust and fuzz scatter back. The loss
-is the mean over pairs and RGB of (log(EPS + y_pbr) - log(EPS + y_neural))^2 (relative error, as a tonemapped image
-sees it; EPS keeps near-black values from dominating) plus ALBEDO_WEIGHT times the same for the directional albedo
-at the views (PBR: Karis' fit, `split_sum_albedo`, which the renders favour over the exact one; neural: T rho_d +
-R): under an environment map a surface shows mostly its albedo, and a few direction pairs cannot see all of it (the
+stratified cosine-weighted set of `PBRFitConfig.cosine_directions` directions (N_COSINE; a Fibonacci spiral through
+`cosine_sample`), the mirror direction of wo and directions MIRROR_OFFSETS_DEG around it (in and out of the plane of
+incidence), where glossy lobes live, and wo itself with directions RETRO_OFFSETS_DEG around it, where dust and fuzz
+scatter back. The loss is the mean over pairs and RGB of (log(EPS + y_pbr) - log(EPS + y_neural))^2 (relative
+error, as a tonemapped image sees it; EPS keeps near-black values from dominating) plus ALBEDO_WEIGHT times the same
+for the directional albedo at the views (PBR: its own, `PBRMaterial.albedo`; neural: T rho_d + R): under an
+environment map a surface shows mostly its albedo, and a few direction pairs cannot see all of it (the
 back-scattering of dust missed the first version by 2x).
 
 1. Distinct materials: texels' (rho_d, latent) rounded to 1/256 (below what an 8-bit texture resolves) are fitted
@@ -45,7 +45,10 @@ from neumatex_core.materials.neural_basis import NeuralBasis, NeuralMaterial
 from neumatex_core.materials.pbr import DIELECTRIC_F0, PBRMaterial
 
 VIEW_COS = (0.9, 0.6, 0.3)
-N_COSINE = 6
+# Cosine-weighted directions per view. 6 until 2026-12-07: the dozen mirror and retro pairs per view then outweighed
+# the hemisphere, and the fallback rendered further from the neural material (bench/assets.py --fit-variants
+# cosine_directions=6: design note 101). The synthetic data's PBR targets keep 6 (synth/materials.py).
+N_COSINE = 64
 MIRROR_OFFSETS_DEG = (5.0, 15.0)
 RETRO_OFFSETS_DEG = (12.0, 30.0)
 ALBEDO_WEIGHT = 1.0
@@ -54,7 +57,7 @@ ROUGH_MIN = 0.05
 GRID_ROUGHNESS = 20  # log-spaced: sharp lobes need finer steps
 GAUSS_NEWTON = 2
 GRID_METALLIC = 3
-AlbedoModel = Literal["split_sum", "exact", "none"]
+AlbedoModel = Literal["exact", "split_sum", "none"]
 METHOD = ("grid search over roughness x metallic with closed-form base colour, then Adam on the log-space "
           "cosine-weighted BSDF difference over fixed direction pairs (neumatex_core/assets/pbr_fit.py)")
 
@@ -63,17 +66,19 @@ METHOD = ("grid search over roughness x metallic with closed-form base colour, t
 class PBRFitConfig:
     steps: int = 20  # Adam refinement steps after the grid search (0: grid only)
     lr: float = 0.03
-    chunk: int = 8192  # distinct materials per batch (memory ~ chunk x K x a few hundred bytes)
-    # The PBR side of the albedo term: "split_sum" (Karis' fit, `split_sum_albedo`: what the renders favour),
-    # "exact" (`PBRMaterial.albedo`) or "none" (no albedo term); bench/assets.py --fit-albedo compares them.
-    albedo: AlbedoModel = "split_sum"
+    chunk: int = 2048  # distinct materials per batch (memory ~ chunk x K x a few hundred bytes; no bit of the result)
+    cosine_directions: int = N_COSINE  # the cosine-weighted wi per view (`fit_directions`)
+    # The PBR side of the albedo term: "exact" (`PBRMaterial.albedo`), "split_sum" (Karis' fit, `split_sum_albedo`;
+    # the term until 2026-12-07) or "none" (no albedo term); bench/assets.py --fit-variants compares them.
+    albedo: AlbedoModel = "exact"
 
 
-def fit_directions() -> tuple[torch.Tensor, torch.Tensor]:
-    """(wi [K, 3], wo [K, 3]) local unit directions of the fit (see the module docstring)."""
+def fit_directions(cosine: int = N_COSINE) -> tuple[torch.Tensor, torch.Tensor]:
+    """(wi [K, 3], wo [K, 3]) local unit directions of the fit with `cosine` cosine-weighted wi per view (see the
+    module docstring)."""
     golden = (math.sqrt(5) - 1) / 2
-    k = torch.arange(N_COSINE, dtype=torch.float32)
-    cos_set = cosine_sample(torch.stack([(k + 0.5) / N_COSINE, ((k + 0.5) * golden) % 1.0], dim=-1))
+    k = torch.arange(cosine, dtype=torch.float32)
+    cos_set = cosine_sample(torch.stack([(k + 0.5) / cosine, ((k + 0.5) * golden) % 1.0], dim=-1))
     wis, wos = [], []
     for c in VIEW_COS:
         theta = math.acos(c)
@@ -148,13 +153,11 @@ def view_directions() -> torch.Tensor:
 
 
 def split_sum_albedo(mat: PBRMaterial, wo: torch.Tensor) -> torch.Tensor:
-    """[N, 3] the fit's albedo of PBR materials at viewer directions wo [N, 3]: Karis' analytic fit of UE4's
-    split-sum environment BRDF (2013), not `PBRMaterial.albedo` (this GGX's exact, tabulated albedo). The fit's
-    albedo term is a calibration, and bench/assets.py (16 objects, 2 per family) judges it by the renders: with
-    the exact albedo the metals' fallback renders 1.9 dB further from the neural material (32.4 -> 30.5 dB), with
-    no albedo term 0.2 dB, all families 30.0 -> 29.7 / 29.8 dB (docs/design-notes.md, item 101). Karis' fit
-    underrates a conductor's albedo by 0.07-0.14 at mid roughness, so it lets the fallback's metals be brighter
-    than the neural material's albedo says, which its renders under the shared maps favour."""
+    """[N, 3] Karis' analytic fit of UE4's split-sum environment BRDF (2013) for PBR materials at viewer directions wo
+    [N, 3]: the fit's albedo term until 2026-12-07 (`PBRFitConfig.albedo` "split_sum"). It underrates this GGX's
+    conductors by 0.07-0.14 at mid roughness (`PBRMaterial.albedo` is exact). With 6 cosine directions per view that
+    let the fallback's metals render closer to the neural material; with 64 the exact albedo renders them closer
+    (bench/assets.py --fit-variants albedo=split_sum; docs/design-notes.md, item 101)."""
     r = mat.roughness.unsqueeze(-1)
     n_dot_v = wo[:, 2].clamp(0.0, 1.0).unsqueeze(-1)
     c0 = torch.tensor([-1.0, -0.0275, -0.572, 0.022], device=wo.device)
@@ -167,19 +170,19 @@ def split_sum_albedo(mat: PBRMaterial, wo: torch.Tensor) -> torch.Tensor:
     return mat.diffuse_albedo + spec
 
 
-def pbr_albedo(p: torch.Tensor, model: AlbedoModel = "split_sum") -> torch.Tensor:
-    """The fit's albedo [M, V, 3] of PBR parameters [M, 5] at the fit's views: `split_sum_albedo`, or with model
-    "exact" `PBRMaterial.albedo`."""
+def pbr_albedo(p: torch.Tensor, model: AlbedoModel = "exact") -> torch.Tensor:
+    """The fit's albedo [M, V, 3] of PBR parameters [M, 5] at the fit's views: `PBRMaterial.albedo`, or with model
+    "split_sum" `split_sum_albedo`."""
     wo = view_directions().to(p.device)
     m, v = p.shape[0], wo.shape[0]
     rep = p.repeat_interleave(v, 0)
     mat = PBRMaterial(rep[:, :3], rep[:, 3], rep[:, 4])
     wo_r = wo.repeat(m, 1)
-    return (mat.albedo(wo_r) if model == "exact" else split_sum_albedo(mat, wo_r)).view(m, v, 3)
+    return (split_sum_albedo(mat, wo_r) if model == "split_sum" else mat.albedo(wo_r)).view(m, v, 3)
 
 
 def _total_loss(p: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, log_target: torch.Tensor,
-                log_albedo: torch.Tensor | None, model: AlbedoModel = "split_sum") -> torch.Tensor:
+                log_albedo: torch.Tensor | None, model: AlbedoModel = "exact") -> torch.Tensor:
     loss = _log_loss(_pbr_y(p[:, :3], p[:, 3], p[:, 4], wi, wo), log_target)
     if log_albedo is not None:
         loss = loss + ALBEDO_WEIGHT * _log_loss(pbr_albedo(p, model), log_albedo)
@@ -204,7 +207,7 @@ def _affine_grid(wi: torch.Tensor, wo: torch.Tensor) -> tuple[torch.Tensor, torc
 
 
 def _grid_search(target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albedo: torch.Tensor | None = None,
-                 chunk: int = 128, model: AlbedoModel = "split_sum") -> torch.Tensor:
+                 chunk: int = 128, model: AlbedoModel = "exact") -> torch.Tensor:
     """Start parameters [M, 5] for targets y_neural [M, K, 3] (and albedos [M, V, 3]); step 2 of the module
     docstring. `chunk` materials at a time: at 128 its [chunk, 3, G, K] tensors stay in the CPU's cache (5x faster
     than 1024); each material's search is its own, so the chunk changes no bit of the result."""
@@ -254,10 +257,10 @@ def _grid_search(target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, albed
     return torch.cat([base_best, grid[best]], dim=-1)
 
 
-def neural_targets(basis: NeuralBasis, values: torch.Tensor) -> torch.Tensor:
+def neural_targets(basis: NeuralBasis, values: torch.Tensor, cosine: int = N_COSINE) -> torch.Tensor:
     """y_neural = f cos_i [M, K, 3] of neural materials values [M, 3 + L] (rho_d, latent [L]) at the fit's K
-    pairs."""
-    wi, wo = (x.to(values.device) for x in fit_directions())
+    pairs (`fit_directions(cosine)`)."""
+    wi, wo = (x.to(values.device) for x in fit_directions(cosine))
     m, k = values.shape[0], wi.shape[0]
     with torch.no_grad():
         neural = NeuralMaterial(basis, values[:, :3].repeat_interleave(k, 0), values[:, 3:].repeat_interleave(k, 0))
@@ -284,7 +287,10 @@ def fit_targets(target: torch.Tensor, albedo: torch.Tensor | None = None,
     model = cfg.albedo
     if model == "none":
         albedo = None
-    wi, wo = (x.to(target.device) for x in fit_directions())
+    wi, wo = (x.to(target.device) for x in fit_directions(cfg.cosine_directions))
+    if target.shape[1] != wi.shape[0]:
+        raise ValueError(f"targets at {target.shape[1]} direction pairs, but the fit with {cfg.cosine_directions} "
+                         f"cosine directions has {wi.shape[0]} (make them with the same cosine_directions)")
     with torch.no_grad():
         log_target = torch.log(EPS + target)
         log_albedo = None if albedo is None else torch.log(EPS + albedo)
@@ -336,7 +342,7 @@ def fit_pbr(basis: NeuralBasis, material: torch.Tensor, mask: torch.Tensor | Non
     params, losses = [], []
     for s in range(0, values.shape[0], cfg.chunk):
         chunk = values[s:s + cfg.chunk]
-        p, loss = fit_targets(neural_targets(basis, chunk), neural_albedo(basis, chunk), cfg)
+        p, loss = fit_targets(neural_targets(basis, chunk, cfg.cosine_directions), neural_albedo(basis, chunk), cfg)
         params.append(p)
         losses.append(loss)
     texture = torch.cat(params)[inverse_t].reshape(h, w, 5)
@@ -346,7 +352,8 @@ def fit_pbr(basis: NeuralBasis, material: torch.Tensor, mask: torch.Tensor | Non
     return texture, float(per_texel.mean())
 
 
-def pbr_targets(params: torch.Tensor) -> torch.Tensor:
-    """y = f cos_i [M, K, 3] of PBR parameters [M, 5] (base colour, roughness, metallic) at the fit's K pairs."""
-    wi, wo = (x.to(params.device) for x in fit_directions())
+def pbr_targets(params: torch.Tensor, cosine: int = N_COSINE) -> torch.Tensor:
+    """y = f cos_i [M, K, 3] of PBR parameters [M, 5] (base colour, roughness, metallic) at the fit's K pairs
+    (`fit_directions(cosine)`)."""
+    wi, wo = (x.to(params.device) for x in fit_directions(cosine))
     return _pbr_y(params[:, :3], params[:, 3], params[:, 4], wi, wo)

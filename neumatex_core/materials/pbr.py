@@ -101,8 +101,8 @@ class PBRMaterial(Material):
         """[N, 3] directional albedo at viewer directions wo [N, 3]: the Lambertian part plus this GGX lobe's own
         tabulated albedo (`albedo_tables`' spec_a / spec_b, exact for the separable Smith G up to ~1e-3; linear in
         F0 as UE4's Schlick is), the same tables the layered material's specular lobe uses. Karis' analytic fit
-        of the split-sum LUT (which the PBR fallback's fit keeps: assets/pbr_fit.split_sum_albedo) underrates
-        this lobe's conductors by 0.07-0.14 at mid roughness."""
+        of the split-sum LUT, used here before (assets/pbr_fit.split_sum_albedo), underrates this lobe's conductors
+        by 0.07-0.14 at mid roughness."""
         mu = wo[:, 2].clamp(0.0, 1.0)
         spec_a = albedo_tables.lookup("spec_a", mu, self.roughness).unsqueeze(-1)
         spec_b = albedo_tables.lookup("spec_b", mu, self.roughness).unsqueeze(-1)
