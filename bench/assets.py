@@ -146,13 +146,14 @@ def io_figures(asset: MaterialAsset, basis: NeuralBasis, repeats: int) -> dict[s
 
 def fit_variant(text: str) -> PBRFitConfig:
     """A PBRFitConfig from "field=value,field=value" (`--fit-variants`); ValueError naming what is wrong."""
-    known = {f.name: f.type for f in fields(PBRFitConfig)}
+    defaults = PBRFitConfig()
+    known = [f.name for f in fields(PBRFitConfig)]
     values: dict[str, Any] = {}
     for item in (x.strip() for x in text.split(",") if x.strip()):
         key, _, value = item.partition("=")
         if key not in known or not value:
             raise ValueError(f"{item!r}: expected field=value with a field of PBRFitConfig ({', '.join(known)})")
-        values[key] = value if known[key] in ("str", "AlbedoModel") else type(getattr(PBRFitConfig(), key))(value)
+        values[key] = type(getattr(defaults, key))(value)  # each field's type is its default's
     return PBRFitConfig(**values)
 
 

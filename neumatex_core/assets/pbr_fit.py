@@ -326,6 +326,12 @@ def fit_targets(target: torch.Tensor, albedo: torch.Tensor | None = None,
         return (torch.where(better.unsqueeze(-1), refined, start_q), torch.where(better, refined_loss, start_loss))
 
 
+def fit_neural(basis: NeuralBasis, values: torch.Tensor, cfg: PBRFitConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """`fit_targets` for neural materials values [M, 3 + L] (rho_d, latent [L]): their targets and albedos made at
+    cfg's direction set."""
+    return fit_targets(neural_targets(basis, values, cfg.cosine_directions), neural_albedo(basis, values), cfg)
+
+
 def fit_pbr(basis: NeuralBasis, material: torch.Tensor, mask: torch.Tensor | None = None,
             config: PBRFitConfig | None = None) -> tuple[torch.Tensor, float]:
     """(PBR texture [H, W, 5] (base colour, roughness, metallic) quantised to 8 bits, mean log loss over the texels
@@ -342,7 +348,7 @@ def fit_pbr(basis: NeuralBasis, material: torch.Tensor, mask: torch.Tensor | Non
     params, losses = [], []
     for s in range(0, values.shape[0], cfg.chunk):
         chunk = values[s:s + cfg.chunk]
-        p, loss = fit_targets(neural_targets(basis, chunk, cfg.cosine_directions), neural_albedo(basis, chunk), cfg)
+        p, loss = fit_neural(basis, chunk, cfg)
         params.append(p)
         losses.append(loss)
     texture = torch.cat(params)[inverse_t].reshape(h, w, 5)

@@ -173,7 +173,7 @@ class ProceduralMaterialField(MaterialField):
     def pbr_lut(self) -> torch.Tensor:
         """[R, PBR_LEVELS, 5] best-matching PBR (base colour, roughness, metallic) per region and blend level."""
         if self._pbr_lut is None:
-            from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_targets, neural_albedo, neural_targets
+            from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_neural
 
             # The data's PBR targets keep the fit they were made with (6 cosine directions per view, Karis'
             # split-sum albedo), whatever the assets' fallback uses now (design note 101), so that data made
@@ -184,8 +184,7 @@ class ProceduralMaterialField(MaterialField):
             t = torch.linspace(0.0, 1.0, PBR_LEVELS, device=self.device)
             region = torch.arange(n, device=self.device).repeat_interleave(PBR_LEVELS)
             values = torch.cat([self.base_color(region, t.repeat(n)), self.latents[region]], dim=-1)
-            params, _ = fit_targets(neural_targets(self.basis, values, cfg.cosine_directions),
-                                    neural_albedo(self.basis, values), cfg)
+            params, _ = fit_neural(self.basis, values, cfg)
             self._pbr_lut = params.reshape(n, PBR_LEVELS, 5)
         return self._pbr_lut
 
