@@ -1,0 +1,135 @@
+"""The PBR fallback that every asset ships, scored against Blender Cycles: each fit of it next to the neural material
+it is fit from and the PBR baseline's own TTO.
+
+    NEUMATEX_SHARED=../shared bench/cycles_matrix.sh      # the captures (coat, sheen, metal, diffuse, four meshes)
+    NEUMATEX_SHARED=../shared .venv/bin/python bench/cycles_fallback.py runs/cycles/teapot-coat ... \\
+        --fit-variants "cosine_directions=6,albedo=split_sum"
+
+The fallback (GLB / USD, for engines) is fit from the neural material, so bench/assets.py scores it against that
+material, on our renders of synthetic objects. This benchmark asks the question a studio asks: how close does it come
+to the photographs, made by another renderer? Per capture (made as bench/cycles_extract.py says, with its twin
+`<capture>.seed1` for clean scores): the pipeline's stages before the TTO, the PBR baseline's TTO (variant "pbr", 400
+steps) and the extraction's default TTO ("neural"), as bench/cycles_extract.py runs them. The default's result is
+baked to an asset at the cpu preset's texture resolution (`asset_from_triplane`), whose fallback is fit once with
+the shipped `PBRFitConfig` ("fallback") and once with each `--fit-variants` entry ("fallback:<entry>"; fields as in
+bench/assets.py). Every material is rendered by our path tracer and scored noise-corrected against Cycles' two
+renders (bench/cycles_extract.py's `clean_render_psnr`) on the 8 held-out photos (capture lighting, unseen poses)
+and on the relit views (held-out maps). Prints, per Principled preset over its captures, the paired differences
+(fallback - PBR baseline, neural - fallback, each variant's fallback - the shipped one) and writes a JSON line to
+bench/results/cycles_fallback.jsonl. Each capture's scores are kept in <work>/<capture>/fallback_scores.json, so
+an interrupted run resumes (`--again` recomputes them); split the captures across processes with one thread each.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from assets import fit_variant  # noqa: E402
+from common import argument_parser, prepared_capture, write_result  # noqa: E402
+from cycles_extract import TWIN_SUFFIX, by_preset, clean_render_psnr, selection_of, variant_tto  # noqa: E402
+
+from neumatex_core.assets import asset_from_triplane  # noqa: E402
+from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_pbr  # noqa: E402
+from neumatex_core.atomic import write_json_atomic  # noqa: E402
+from neumatex_core.eval.references import harness_envmap  # noqa: E402
+from neumatex_core.fields.neural_field import TriplaneMaterialField  # noqa: E402
+from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
+from neumatex_core.tto import solve  # noqa: E402
+
+SHIPPED = "fallback"
+
+
+def clean_scores(capture: Path, field: Any, mesh: Any, clean_spp: int, bounces: int) -> dict[str, Any]:
+    """Clean PSNR (dB) of `field` on `mesh` against the Cycles capture and its twin: the held-out photos
+    (`photos_clean_db`) and the mean over the held-out maps (`relit_clean_db`, each map in `relit_clean_maps_db`)."""
+    twin = capture.with_name(capture.name + TWIN_SUFFIX)
+    relit = sorted(p for p in (capture / "relight").glob("*") if (p / "transforms.json").is_file())
+    maps = [clean_render_psnr(r, twin / "relight" / r.name, field, clean_spp, bounces, mesh, j + 1)
+            for j, r in enumerate(relit)]  # fmt: skip
+    return {"photos_clean_db": clean_render_psnr(capture / "photos", twin / "photos", field, clean_spp, bounces, mesh,
+                                                 0),
+            "relit_clean_db": sum(maps) / max(len(maps), 1), "relit_clean_maps_db": maps}  # fmt: skip
+
+
+def bench_capture(capture: Path, work: Path, variants: dict[str, PBRFitConfig], clean_spp: int,
+                  bounces: int) -> dict[str, Any]:
+    """The capture's row: scores of the PBR baseline, the default's neural material and each fallback fit."""
+    if not (capture.with_name(capture.name + TWIN_SUFFIX) / "cycles.json").is_file():
+        raise SystemExit(f"{capture}: no twin capture {capture.name}{TWIN_SUFFIX} (bench/cycles_matrix.sh makes one); "
+                         "the clean scores need it")
+    config, pred, cap, mesh, photos = prepared_capture(capture, work)
+    envmap = harness_envmap(cap)
+    record = json.loads((capture / "cycles.json").read_text())
+    row: dict[str, Any] = {"capture": str(capture), "preset": record["preset"], "mesh": record["mesh"]["source"],
+                           "texture_resolution": config.texture_resolution}  # fmt: skip
+    for name in ("pbr", "neural"):
+        tto = variant_tto(name, config)
+        t0 = time.perf_counter()
+        result = solve(tto, mesh, envmap, photos, cap.tonemap, pred, load_basis(basis_id=tto.basis), truth=None)
+        seconds = time.perf_counter() - t0
+        field, scene_mesh = result.params.field(), result.mesh or mesh
+        print(f"{capture.name} {name}: TTO {seconds:.0f} s, scoring", flush=True)
+        row[name] = {"tto_s": round(seconds, 1), **selection_of(result),
+                     **clean_scores(capture, field, scene_mesh, clean_spp, bounces)}  # fmt: skip
+    if not isinstance(field, TriplaneMaterialField):
+        raise SystemExit(f"{capture}: the default's result is a {type(field).__name__}, not a triplane field")
+    t0 = time.perf_counter()
+    asset = asset_from_triplane(capture.name, scene_mesh, field, config.texture_resolution)
+    row[SHIPPED] = {"fit_s": round(time.perf_counter() - t0, 1), "fit_loss": asset.pbr_fit_loss,
+                    **clean_scores(capture, asset.field("pbr"), asset.mesh, clean_spp, bounces)}  # fmt: skip
+    for text, cfg in variants.items():
+        t0 = time.perf_counter()
+        texture, loss = fit_pbr(asset.basis, asset.material_texture, asset.texel_mask, cfg)
+        other = dataclasses.replace(asset, pbr_texture=texture)
+        row[f"{SHIPPED}:{text}"] = {"fit_s": round(time.perf_counter() - t0, 1), "fit_loss": loss,
+                                    **clean_scores(capture, other.field("pbr"), other.mesh, clean_spp, bounces)}
+    print(f"{capture.name}: " + ", ".join(f"{k} {v['photos_clean_db']:.2f} / {v['relit_clean_db']:.2f}"
+                                           for k, v in row.items() if isinstance(v, dict)), flush=True)  # fmt: skip
+    return row
+
+
+def main() -> int:
+    parser = argument_parser(__doc__)
+    parser.add_argument("captures", nargs="+", type=Path, help="Cycles capture folders (each with its .seed1 twin)")
+    parser.add_argument("--work", type=Path, default=Path("runs/cycles-fallback"),
+                        help="work folders (the pipeline's stages and each capture's kept scores)")
+    parser.add_argument("--fit-variants", default="cosine_directions=6,albedo=split_sum",
+                        help="';'-separated PBRFitConfig fields (field=value,...) fit next to the shipped fit")
+    parser.add_argument("--clean-spp", type=int, default=64, help="samples per pixel of each of our half-renders")
+    parser.add_argument("--max-bounces", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--again", action="store_true", help="recompute kept scores")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    try:
+        variants = {t.strip(): fit_variant(t) for t in args.fit_variants.split(";") if t.strip()}
+    except ValueError as e:
+        raise SystemExit(f"--fit-variants: {e}") from None
+    rows = []
+    for capture in args.captures:
+        kept = args.work / capture.name / "fallback_scores.json"
+        row = json.loads(kept.read_text()) if kept.is_file() and not args.again else {}
+        if not all(k in row for k in ("pbr", "neural", SHIPPED, *(f"{SHIPPED}:{t}" for t in variants))):
+            row = bench_capture(capture, args.work / capture.name, variants, args.clean_spp, args.max_bounces)
+            write_json_atomic(kept, row)
+        rows.append(row)
+    summary: dict[str, Any] = {"fallback-pbr": by_preset(rows, SHIPPED, "pbr"),
+                               "neural-fallback": by_preset(rows, "neural", SHIPPED)}  # fmt: skip
+    for text in variants:
+        summary[f"fallback-{text}"] = by_preset(rows, SHIPPED, f"{SHIPPED}:{text}")
+    path = write_result("cycles_fallback", {"clean_spp": args.clean_spp, "variants": list(variants), "rows": rows,
+                                            "by_preset": summary})  # fmt: skip
+    print(f"appended to {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
