@@ -16,8 +16,9 @@ bench/assets.py). Every material is rendered by our path tracer and scored noise
 renders (bench/cycles_extract.py's `clean_render_psnr`) on the 8 held-out photos (capture lighting, unseen poses)
 and on the relit views (held-out maps). Prints, per Principled preset over its captures, the paired differences
 (fallback - PBR baseline, neural - fallback, each variant's fallback - the shipped one) and writes a JSON line to
-bench/results/cycles_fallback.jsonl. Each capture's scores are kept in <work>/<capture>/fallback_scores.json, so
-an interrupted run resumes (`--again` recomputes them); split the captures across processes with one thread each.
+bench/results/cycles_fallback.jsonl. Each capture's scores are kept in <work>/<capture>/fallback_scores.json and its
+baked asset in fallback_asset.pt, so an interrupted run resumes and a new fit variant runs only its own fit and
+scores (`--again` recomputes everything); split the captures across processes with one thread each.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from assets import fit_variant  # noqa: E402
 from common import argument_parser, prepared_capture, write_result  # noqa: E402
 from cycles_extract import TWIN_SUFFIX, by_preset, clean_render_psnr, selection_of, variant_tto  # noqa: E402
 
-from neumatex_core.assets import asset_from_triplane  # noqa: E402
+from neumatex_core.assets import MaterialAsset, asset_from_triplane  # noqa: E402
 from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_pbr  # noqa: E402
 from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.eval.references import harness_envmap  # noqa: E402
@@ -45,6 +46,7 @@ from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
 from neumatex_core.tto import solve  # noqa: E402
 
 SHIPPED = "fallback"
+ASSET_FILE = "fallback_asset.pt"
 
 
 def clean_scores(capture: Path, field: Any, mesh: Any, clean_spp: int, bounces: int) -> dict[str, Any]:
@@ -59,9 +61,26 @@ def clean_scores(capture: Path, field: Any, mesh: Any, clean_spp: int, bounces: 
             "relit_clean_db": sum(maps) / max(len(maps), 1), "relit_clean_maps_db": maps}  # fmt: skip
 
 
+def fallback_scores(capture: Path, asset: MaterialAsset, text: str, cfg: PBRFitConfig, clean_spp: int,
+                    bounces: int) -> dict[str, Any]:
+    """The scores of the asset's fallback fit with `cfg` (the `--fit-variants` entry `text`)."""
+    t0 = time.perf_counter()
+    other = refit(asset, cfg)
+    return {"fit_s": round(time.perf_counter() - t0, 1), "fit_loss": other.pbr_fit_loss,
+            **clean_scores(capture, other.field("pbr"), other.mesh, clean_spp, bounces)}  # fmt: skip
+
+
+def refit(asset: MaterialAsset, cfg: PBRFitConfig) -> MaterialAsset:
+    """The asset with its PBR fallback fit again with `cfg` from its baked textures: the fallback that
+    `asset_from_triplane(..., pbr=cfg)` makes."""
+    texture, loss = fit_pbr(asset.basis, asset.material_texture, asset.texel_mask, cfg)
+    return dataclasses.replace(asset, pbr_texture=texture, pbr_fit_loss=loss)
+
+
 def bench_capture(capture: Path, work: Path, variants: dict[str, PBRFitConfig], clean_spp: int,
                   bounces: int) -> dict[str, Any]:
-    """The capture's row: scores of the PBR baseline, the default's neural material and each fallback fit."""
+    """The capture's row: scores of the PBR baseline, the default's neural material and each fallback fit; the
+    baked asset is kept in work/fallback_asset.pt."""
     if not (capture.with_name(capture.name + TWIN_SUFFIX) / "cycles.json").is_file():
         raise SystemExit(f"{capture}: no twin capture {capture.name}{TWIN_SUFFIX} (bench/cycles_matrix.sh makes one); "
                          "the clean scores need it")
@@ -85,12 +104,9 @@ def bench_capture(capture: Path, work: Path, variants: dict[str, PBRFitConfig], 
     asset = asset_from_triplane(capture.name, scene_mesh, field, config.texture_resolution)
     row[SHIPPED] = {"fit_s": round(time.perf_counter() - t0, 1), "fit_loss": asset.pbr_fit_loss,
                     **clean_scores(capture, asset.field("pbr"), asset.mesh, clean_spp, bounces)}  # fmt: skip
+    torch.save(asset, work / ASSET_FILE)
     for text, cfg in variants.items():
-        t0 = time.perf_counter()
-        texture, loss = fit_pbr(asset.basis, asset.material_texture, asset.texel_mask, cfg)
-        other = dataclasses.replace(asset, pbr_texture=texture)
-        row[f"{SHIPPED}:{text}"] = {"fit_s": round(time.perf_counter() - t0, 1), "fit_loss": loss,
-                                    **clean_scores(capture, other.field("pbr"), other.mesh, clean_spp, bounces)}
+        row[f"{SHIPPED}:{text}"] = fallback_scores(capture, asset, text, cfg, clean_spp, bounces)
     print(f"{capture.name}: " + ", ".join(f"{k} {v['photos_clean_db']:.2f} / {v['relit_clean_db']:.2f}"
                                            for k, v in row.items() if isinstance(v, dict)), flush=True)  # fmt: skip
     return row
@@ -117,9 +133,16 @@ def main() -> int:
     for capture in args.captures:
         kept = args.work / capture.name / "fallback_scores.json"
         row = json.loads(kept.read_text()) if kept.is_file() and not args.again else {}
-        if not all(k in row for k in ("pbr", "neural", SHIPPED, *(f"{SHIPPED}:{t}" for t in variants))):
+        missing = [t for t in variants if f"{SHIPPED}:{t}" not in row]
+        asset_file = args.work / capture.name / ASSET_FILE
+        if not all(k in row for k in ("pbr", "neural", SHIPPED)) or (missing and not asset_file.is_file()):
             row = bench_capture(capture, args.work / capture.name, variants, args.clean_spp, args.max_bounces)
-            write_json_atomic(kept, row)
+        elif missing:  # the kept asset's fallback fit with the new variants only
+            asset = torch.load(asset_file, weights_only=False)
+            for text in missing:
+                row[f"{SHIPPED}:{text}"] = fallback_scores(capture, asset, text, variants[text], args.clean_spp,
+                                                           args.max_bounces)  # fmt: skip
+        write_json_atomic(kept, row)
         rows.append(row)
     summary: dict[str, Any] = {"fallback-pbr": by_preset(rows, SHIPPED, "pbr"),
                                "neural-fallback": by_preset(rows, "neural", SHIPPED)}  # fmt: skip

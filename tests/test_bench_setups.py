@@ -420,3 +420,27 @@ def test_the_cycles_benchmark_keeps_another_lmrms_scores_apart_and_pairs_them_wi
     with pytest.raises(SystemExit):
         cycles.main()
     assert "--stored pairs with the shipped LMRM" in capsys.readouterr().err
+
+
+def test_the_fallback_benchmarks_refit_of_a_kept_asset_is_the_fallback_that_fit_exports(tmp_path: Path) -> None:
+    """bench/cycles_fallback.py scores a fit variant by fitting the kept asset's baked textures again (`refit`), so
+    that a new variant needs no TTO: that must be the fallback an export with that fit makes, bit for bit, also after
+    the asset was kept with torch.save."""
+    from asset_fixtures import make_asset
+    from conftest import MESHES
+
+    from neumatex_core.assets.pbr_fit import PBRFitConfig
+    from neumatex_core.geometry.mesh import load_mesh
+
+    refit = bench_module("cycles_fallback").refit
+    mesh, basis = load_mesh(MESHES / "suzanne.obj").normalized(), load_basis()
+    sparse = PBRFitConfig(cosine_directions=6, albedo="split_sum")
+    shipped = make_asset(mesh, basis, resolution=32, steps=20)
+    torch.save(shipped, tmp_path / "asset.pt")
+    kept = torch.load(tmp_path / "asset.pt", weights_only=False)
+    exported = make_asset(mesh, basis, resolution=32, steps=20, pbr=sparse)
+    again = refit(kept, sparse)
+    assert torch.equal(again.pbr_texture, exported.pbr_texture)
+    assert again.pbr_fit_loss == exported.pbr_fit_loss
+    assert not torch.equal(again.pbr_texture, shipped.pbr_texture)  # the two fits differ, so the test can fail
+    assert torch.equal(again.material_texture, shipped.material_texture)
