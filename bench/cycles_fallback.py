@@ -18,7 +18,8 @@ and on the relit views (held-out maps). Prints, per Principled preset over its c
 (fallback - PBR baseline, neural - fallback, each variant's fallback - the shipped one) and writes a JSON line to
 bench/results/cycles_fallback.jsonl. Each capture's scores are kept in <work>/<capture>/fallback_scores.json and its
 baked asset in fallback_asset.pt, so an interrupted run resumes and a new fit variant runs only its own fit and
-scores (`--again` recomputes everything); split the captures across processes with one thread each.
+scores; a row made under another default TTO or shipped fit is made again, and `--again` recomputes everything.
+Split the captures across processes with one thread each.
 """
 
 from __future__ import annotations
@@ -43,10 +44,16 @@ from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.eval.references import harness_envmap  # noqa: E402
 from neumatex_core.fields.neural_field import TriplaneMaterialField  # noqa: E402
 from neumatex_core.materials.neural_basis import load_basis  # noqa: E402
+from neumatex_core.pipeline import ExtractConfig  # noqa: E402
 from neumatex_core.tto import solve  # noqa: E402
 
 SHIPPED = "fallback"
 ASSET_FILE = "fallback_asset.pt"
+
+
+def current() -> dict[str, Any]:
+    """What a kept row must have been made with to be reused: the default's TTO recipe and the shipped fit."""
+    return {"recipe": ExtractConfig.preset("cpu").tto_config().to_dict(), "fit": dataclasses.asdict(PBRFitConfig())}
 
 
 def clean_scores(capture: Path, field: Any, mesh: Any, clean_spp: int, bounces: int) -> dict[str, Any]:
@@ -61,9 +68,9 @@ def clean_scores(capture: Path, field: Any, mesh: Any, clean_spp: int, bounces: 
             "relit_clean_db": sum(maps) / max(len(maps), 1), "relit_clean_maps_db": maps}  # fmt: skip
 
 
-def fallback_scores(capture: Path, asset: MaterialAsset, text: str, cfg: PBRFitConfig, clean_spp: int,
+def fallback_scores(capture: Path, asset: MaterialAsset, cfg: PBRFitConfig, clean_spp: int,
                     bounces: int) -> dict[str, Any]:
-    """The scores of the asset's fallback fit with `cfg` (the `--fit-variants` entry `text`)."""
+    """The scores of the asset's fallback fit again with `cfg`."""
     t0 = time.perf_counter()
     other = refit(asset, cfg)
     return {"fit_s": round(time.perf_counter() - t0, 1), "fit_loss": other.pbr_fit_loss,
@@ -88,7 +95,7 @@ def bench_capture(capture: Path, work: Path, variants: dict[str, PBRFitConfig], 
     envmap = harness_envmap(cap)
     record = json.loads((capture / "cycles.json").read_text())
     row: dict[str, Any] = {"capture": str(capture), "preset": record["preset"], "mesh": record["mesh"]["source"],
-                           "texture_resolution": config.texture_resolution}  # fmt: skip
+                           "texture_resolution": config.texture_resolution, **current()}  # fmt: skip
     for name in ("pbr", "neural"):
         tto = variant_tto(name, config)
         t0 = time.perf_counter()
@@ -106,7 +113,7 @@ def bench_capture(capture: Path, work: Path, variants: dict[str, PBRFitConfig], 
                     **clean_scores(capture, asset.field("pbr"), asset.mesh, clean_spp, bounces)}  # fmt: skip
     torch.save(asset, work / ASSET_FILE)
     for text, cfg in variants.items():
-        row[f"{SHIPPED}:{text}"] = fallback_scores(capture, asset, text, cfg, clean_spp, bounces)
+        row[f"{SHIPPED}:{text}"] = fallback_scores(capture, asset, cfg, clean_spp, bounces)
     print(f"{capture.name}: " + ", ".join(f"{k} {v['photos_clean_db']:.2f} / {v['relit_clean_db']:.2f}"
                                            for k, v in row.items() if isinstance(v, dict)), flush=True)  # fmt: skip
     return row
@@ -135,12 +142,13 @@ def main() -> int:
         row = json.loads(kept.read_text()) if kept.is_file() and not args.again else {}
         missing = [t for t in variants if f"{SHIPPED}:{t}" not in row]
         asset_file = args.work / capture.name / ASSET_FILE
-        if not all(k in row for k in ("pbr", "neural", SHIPPED)) or (missing and not asset_file.is_file()):
+        stale = {k: v for k, v in current().items() if row.get(k) != v}  # made by another default or fit
+        if stale or not all(k in row for k in ("pbr", "neural", SHIPPED)) or (missing and not asset_file.is_file()):
             row = bench_capture(capture, args.work / capture.name, variants, args.clean_spp, args.max_bounces)
         elif missing:  # the kept asset's fallback fit with the new variants only
             asset = torch.load(asset_file, weights_only=False)
             for text in missing:
-                row[f"{SHIPPED}:{text}"] = fallback_scores(capture, asset, text, variants[text], args.clean_spp,
+                row[f"{SHIPPED}:{text}"] = fallback_scores(capture, asset, variants[text], args.clean_spp,
                                                            args.max_bounces)  # fmt: skip
         write_json_atomic(kept, row)
         rows.append(row)
