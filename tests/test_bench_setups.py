@@ -2,7 +2,8 @@
 bench/basis_start.py) must stay valid TTO configs as the default changes (the default's held-out choice of a second
 basis once made both refuse to start), and the fixed-point benchmark's image-space mean of several seeds' results
 and its share of the error the seeds have in common are what their docstrings say (docs/design-notes.md, items 49,
-82); bench/pbr_start.py's start reads a basis of any latent size (item 83)."""
+82); bench/pbr_start.py's start reads a basis of any latent size (item 83); bench/cycles_fallback.py's refit of a kept
+asset is the fallback an export with that fit makes (item 102)."""
 
 from __future__ import annotations
 
