@@ -103,6 +103,19 @@ def clean_render_psnr(folder: Path, twin: Path, field: MaterialField, spp: int, 
     return score.psnr
 
 
+def clean_scores(capture: Path, field: MaterialField, mesh: Any, clean_spp: int, bounces: int) -> dict[str, Any]:
+    """Clean PSNR (dB) of `field` on `mesh` against the Cycles capture and its twin (`clean_render_psnr`): the
+    held-out photos in photos/ (`photos_clean_db`) and the mean over the held-out maps in relight/
+    (`relit_clean_db`, each map in `relit_clean_maps_db`)."""
+    twin = capture.with_name(capture.name + TWIN_SUFFIX)
+    relit = sorted(p for p in (capture / "relight").glob("*") if (p / "transforms.json").is_file())
+    maps = [clean_render_psnr(r, twin / "relight" / r.name, field, clean_spp, bounces, mesh, j + 1)
+            for j, r in enumerate(relit)]  # fmt: skip
+    return {"relit_clean_maps_db": maps, "relit_clean_db": sum(maps) / max(len(maps), 1),
+            "photos_clean_db": clean_render_psnr(capture / "photos", twin / "photos", field, clean_spp, bounces,
+                                                 mesh, 0)}  # fmt: skip
+
+
 def variant_tto(name: str, config: ExtractConfig) -> TTOConfig:
     """"neural": the extraction's default TTO; any other name: that `neumatex eval` variant (eval/variants.py) on the
     config's variant base."""
@@ -136,13 +149,9 @@ def bench_capture(capture: Path, work: Path, spp: int, bounces: int, clean_spp: 
               + (f" (choice: {result.selection})" if result.selection else ""), flush=True)
         twin = capture.with_name(capture.name + TWIN_SUFFIX)
         if (twin / "cycles.json").is_file():
-            relit_clean = [clean_render_psnr(r, twin / "relight" / r.name, field, clean_spp, bounces, scene_mesh,
-                                             j + 1) for j, r in enumerate(relit)]  # fmt: skip
             out[name] = {"tto_s": round(seconds, 1), "clean_spp": clean_spp, "clean_average": CLEAN_AVERAGE,
-                         "relit_clean_maps_db": relit_clean,
-                         "relit_clean_db": sum(relit_clean) / max(len(relit_clean), 1),
-                         "photos_clean_db": clean_render_psnr(held_out, twin / "photos", field, clean_spp, bounces,
-                                                              scene_mesh, 0), **selection_of(result)}  # fmt: skip
+                         **clean_scores(capture, field, scene_mesh, clean_spp, bounces),
+                         **selection_of(result)}  # fmt: skip
             continue
         relit_db = [_render_psnr(r, field, range(len(load_capture(r).frames)), spp, bounces, 0, scene_mesh)
                     for r in relit]  # fmt: skip

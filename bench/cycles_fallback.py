@@ -13,7 +13,7 @@ steps) and the extraction's default TTO ("neural"), as bench/cycles_extract.py r
 baked to an asset at the cpu preset's texture resolution (`asset_from_triplane`), whose fallback is fit once with
 the shipped `PBRFitConfig` ("fallback") and once with each `--fit-variants` entry ("fallback:<entry>"; fields as in
 bench/assets.py). Every material is rendered by our path tracer and scored noise-corrected against Cycles' two
-renders (bench/cycles_extract.py's `clean_render_psnr`) on the 8 held-out photos (capture lighting, unseen poses)
+renders (bench/cycles_extract.py's `clean_scores`) on the 8 held-out photos (capture lighting, unseen poses)
 and on the relit views (held-out maps). Prints, per Principled preset over its captures, the paired differences
 (fallback - PBR baseline, neural - fallback, each variant's fallback - the shipped one) and writes a JSON line to
 bench/results/cycles_fallback.jsonl. Each capture's scores are kept in <work>/<capture>/fallback_scores.json and its
@@ -36,7 +36,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from assets import fit_variant  # noqa: E402
 from common import argument_parser, prepared_capture, write_result  # noqa: E402
-from cycles_extract import TWIN_SUFFIX, by_preset, clean_render_psnr, selection_of, variant_tto  # noqa: E402
+from cycles_extract import TWIN_SUFFIX, by_preset, clean_scores, selection_of, variant_tto  # noqa: E402
 
 from neumatex_core.assets import MaterialAsset, asset_from_triplane  # noqa: E402
 from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_pbr  # noqa: E402
@@ -54,18 +54,6 @@ ASSET_FILE = "fallback_asset.pt"
 def current() -> dict[str, Any]:
     """What a kept row must have been made with to be reused: the default's TTO recipe and the shipped fit."""
     return {"recipe": ExtractConfig.preset("cpu").tto_config().to_dict(), "fit": dataclasses.asdict(PBRFitConfig())}
-
-
-def clean_scores(capture: Path, field: Any, mesh: Any, clean_spp: int, bounces: int) -> dict[str, Any]:
-    """Clean PSNR (dB) of `field` on `mesh` against the Cycles capture and its twin: the held-out photos
-    (`photos_clean_db`) and the mean over the held-out maps (`relit_clean_db`, each map in `relit_clean_maps_db`)."""
-    twin = capture.with_name(capture.name + TWIN_SUFFIX)
-    relit = sorted(p for p in (capture / "relight").glob("*") if (p / "transforms.json").is_file())
-    maps = [clean_render_psnr(r, twin / "relight" / r.name, field, clean_spp, bounces, mesh, j + 1)
-            for j, r in enumerate(relit)]  # fmt: skip
-    return {"photos_clean_db": clean_render_psnr(capture / "photos", twin / "photos", field, clean_spp, bounces, mesh,
-                                                 0),
-            "relit_clean_db": sum(maps) / max(len(maps), 1), "relit_clean_maps_db": maps}  # fmt: skip
 
 
 def fallback_scores(capture: Path, asset: MaterialAsset, cfg: PBRFitConfig, clean_spp: int,
@@ -136,13 +124,14 @@ def main() -> int:
         variants = {t.strip(): fit_variant(t) for t in args.fit_variants.split(";") if t.strip()}
     except ValueError as e:
         raise SystemExit(f"--fit-variants: {e}") from None
+    made_with = current()
     rows = []
     for capture in args.captures:
         kept = args.work / capture.name / "fallback_scores.json"
         row = json.loads(kept.read_text()) if kept.is_file() and not args.again else {}
         missing = [t for t in variants if f"{SHIPPED}:{t}" not in row]
         asset_file = args.work / capture.name / ASSET_FILE
-        stale = {k: v for k, v in current().items() if row.get(k) != v}  # made by another default or fit
+        stale = {k: v for k, v in made_with.items() if row.get(k) != v}  # made by another default or fit
         if stale or not all(k in row for k in ("pbr", "neural", SHIPPED)) or (missing and not asset_file.is_file()):
             row = bench_capture(capture, args.work / capture.name, variants, args.clean_spp, args.max_bounces)
         elif missing:  # the kept asset's fallback fit with the new variants only
