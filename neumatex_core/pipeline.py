@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 import torch
@@ -54,8 +54,10 @@ from neumatex_core.lmrm.inference import LMRM, LMRMPrediction
 from neumatex_core.materials.neural_basis import BASIS_V4, BASIS_V6, load_basis
 from neumatex_core.tto.config import PRESETS, UNIFORM_RHO_VALUE, TTOConfig  # extract presets use TTO presets
 from neumatex_core.tto.data import PhotoSet
+from neumatex_core.tto.fallback_choice import choose_fallback
 from neumatex_core.tto.optimise import decoder_for
-from neumatex_core.tto.pbr_start import CHOICES, solve
+from neumatex_core.tto.params import Parametrisation, PBRTriplane
+from neumatex_core.tto.pbr_start import CHOICES, solve, validation_frames
 
 STAGES = ("validate", "prepare_views", "lmrm", "tto", "export")
 DONE = "done.json"
@@ -582,12 +584,9 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
     if not result.finished:
         raise Cancelled(f"stopped at TTO step {result.steps_done}/{tto.steps}; the checkpoint {out / 'checkpoint.pt'} "
                         "resumes it")  # fmt: skip
-    tensors = {"tensor": result.params.tensor.detach().cpu().contiguous()}
-    tuned = result.params.trained_decoder()
-    if tuned is not None:  # train_decoder: the fine-tuned material decoder goes with the planes
-        for k, v in tuned.state_dict().items():
-            tensors[f"decoder.{k}"] = v.detach().cpu().float().contiguous()
-    save_file(tensors, str(out / "result.safetensors"))
+    save_file(_parametrisation_tensors(result.params), str(out / "result.safetensors"))
+    if result.pbr_solution is not None:  # a candidate for the asset's PBR fallback (export: `choose_fallback`)
+        save_file(_parametrisation_tensors(result.pbr_solution), str(out / PBR_SOLUTION_FILE))
     write_json_atomic(out / "history.json", result.history)
     stops = {}
     if result.exposure is not None:  # TTOConfig.photo_exposure: the fitted multipliers, read by the export stage
@@ -602,6 +601,33 @@ def _stage_tto(capture: Path, work: Path, config: ExtractConfig, progress: Progr
 
 
 EXPOSURE_FILE = "exposure.json"  # in the tto stage's folder: the fitted per-photo exposure multipliers
+PBR_SOLUTION_FILE = "pbr_solution.safetensors"  # in the tto stage's folder: the PBR phase's planes (and decoder)
+
+
+DecoderT = TypeVar("DecoderT", bound=torch.nn.Module)
+
+
+def _parametrisation_tensors(params: Parametrisation) -> dict[str, torch.Tensor]:
+    """What a TTO result is stored as: "tensor" (its planes or texture) and, where the TTO fine-tuned a copy of
+    its decoder (TTOConfig.train_decoder), that decoder's weights as "decoder.<name>"."""
+    tensors = {"tensor": params.tensor.detach().cpu().contiguous()}
+    tuned = params.trained_decoder()
+    if tuned is not None:
+        for k, v in tuned.state_dict().items():
+            tensors[f"decoder.{k}"] = v.detach().cpu().float().contiguous()
+    return tensors
+
+
+def _stored_decoder(stored: dict[str, torch.Tensor], decoder: DecoderT, device: torch.device) -> DecoderT:
+    """`decoder`, or a frozen copy of it with the fine-tuned weights that `stored` holds
+    (`_parametrisation_tensors`)."""
+    tuned = {k.removeprefix("decoder."): v.to(device) for k, v in stored.items() if k.startswith("decoder.")}
+    if not tuned:
+        return decoder
+    decoder = copy.deepcopy(decoder)
+    decoder.load_state_dict(tuned)
+    decoder.requires_grad_(False)
+    return decoder
 
 
 def fitted_exposures(work: Path) -> list[float] | None:
@@ -689,12 +715,8 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
     timings.update({f"{s}_cpu_s": float(m.get("cpu_seconds", 0.0)) for s, m in stage_metrics.items()})
     # the basis the TTO's result is in: the config's, or the alternative it chose (TTOConfig.alternative_basis)
     basis = load_basis(str(device), str(stage_metrics["tto"].get("basis", tto.basis)))
-    material_decoder = decoder_for(pred.material_decoder, basis)  # resized where the basis's latent size is not 6
-    tuned = {k.removeprefix("decoder."): v.to(device) for k, v in stored.items() if k.startswith("decoder.")}
-    if tuned:  # the TTO fine-tuned a copy of the material decoder (TTOConfig.train_decoder)
-        material_decoder = copy.deepcopy(material_decoder)
-        material_decoder.load_state_dict(tuned)
-        material_decoder.requires_grad_(False)
+    # resized where the basis's latent size is not 6; the TTO's fine-tuned copy where it made one
+    material_decoder = _stored_decoder(stored, decoder_for(pred.material_decoder, basis), device)
     with _open_capture(capture) as cap:
         norm = _normalised(cap, work, device)
         name = config.name or cap.root.name
@@ -722,6 +744,15 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                                         timings=timings)  # fmt: skip
             gbuffer = None  # type: ignore[assignment]
         asset.centre, asset.scale = [float(c) for c in norm.centre], float(norm.scale)
+        solution_file = stage_dir(work, "tto") / PBR_SOLUTION_FILE
+        held_out = _held_out_frames(norm, tto, stage_metrics["tto"])
+        if solution_file.is_file() and held_out:
+            _emit(progress, "export", 0.3, f"choosing the PBR fallback on {len(held_out)} held-out photos")
+            stored_pbr = load_file(str(solution_file))
+            solution = PBRTriplane(Triplane.from_planes(stored_pbr["tensor"].to(device)),
+                                   _stored_decoder(stored_pbr, pred.pbr_decoder, device))  # fmt: skip
+            asset = choose_fallback(asset, solution, _photo_set(norm, device).subset(held_out), norm.envmap,
+                                    cap.tonemap, tto)  # fmt: skip
         _emit(progress, "export", 0.4, "rendering previews")
         make_previews(asset, norm.envmap, config.preview_resolution, config.preview_spp, tonemap=cap.tonemap)
         fitted = fitted_exposures(work)
@@ -796,6 +827,8 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                  + f" of {tto.pixels} pixels x {tto.spp} spp, {tto.max_bounces} bounces; field {tto.field}, "
                  f"init {tto.init}, reg {tto.reg}; material variation {config.variation}"
                  + _choice_note(stage_metrics["tto"]) + _basis_note(stage_metrics["tto"]) + "."]  # fmt: skip
+        if _fallback_note(asset.metrics):
+            notes.append(_fallback_note(asset.metrics))
         if not record["trained"]:
             notes.append("No trained LMRM checkpoint was available: the triplane started from random values and the "
                          "TTO ran without the uncertainty regulariser.")  # fmt: skip
@@ -805,6 +838,23 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                                             fitted),
                               target / "report")  # fmt: skip
     return {**asset.metrics, "asset": str(target), "report": str(report)}
+
+
+def _held_out_frames(norm: _Normalised, tto: TTOConfig, tto_metrics: dict[str, Any]) -> list[int]:
+    """The photos the TTO's choice held out (`validation_frames`, as `solve` picked them), [] where none were."""
+    if not tto_metrics.get("validation_photos"):
+        return []
+    return validation_frames(norm.cameras, tto.validation_photos, norm.mesh.bounding_sphere()[0])
+
+
+def _fallback_note(metrics: dict[str, float]) -> str:
+    """The report's words for how the PBR fallback was chosen (`choose_fallback`), or "" when it was not."""
+    if "fallback_from_pbr_phase" not in metrics:
+        return ""
+    scores = (f"the fit to the neural material {metrics['fallback_psnr_fit']:.2f} dB, the TTO's PBR phase "
+              f"{metrics['fallback_psnr_pbr_phase']:.2f} dB on the held-out photos")
+    kept = "the TTO's PBR phase" if metrics["fallback_from_pbr_phase"] else "the fit to the neural material"
+    return f"PBR fallback: {kept} ({scores})."
 
 
 def _choice_note(tto_metrics: dict[str, Any]) -> str:

@@ -32,6 +32,7 @@ from neumatex_core.pipeline import (
     run_stage,
     stage_dir,
 )
+from neumatex_core.tto.fallback_choice import PBR_PHASE_METHOD
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -184,6 +185,15 @@ def test_the_variation_sets_the_consistency_term_and_the_report_names_the_choice
     assert tto["variation"] == "choose" and tto["uniform_kept"] in (0.0, 1.0) and tto["validation_photos"] == 4
     assert tto["select_basis_taken"] in (0.0, 1.0)  # basis v6's candidates were scored too (design note 80)
     page = (out / "report" / "index.html").read_text()
+    # the PBR fallback chosen on the same held-out photos between the fit and the TTO's PBR phase (stored beside
+    # the result), and the report says which and why
+    asset = read_asset(out)
+    assert (stage_dir(default_work(out), "tto") / "pbr_solution.safetensors").is_file()
+    from_phase = asset.metrics["fallback_from_pbr_phase"] == 1.0
+    assert from_phase == (asset.metrics["fallback_psnr_pbr_phase"] > asset.metrics["fallback_psnr_fit"])
+    assert (asset.pbr_method == PBR_PHASE_METHOD) == from_phase and math.isnan(asset.pbr_fit_loss) == from_phase
+    kept = "the TTO&#x27;s PBR phase" if from_phase else "the fit to the neural material"
+    assert f"PBR fallback: {kept} (the fit to the neural material {asset.metrics['fallback_psnr_fit']:.2f} dB" in page
     if tto["select_basis_taken"]:
         chosen = "uniform" if tto["select_basis_uniform_kept"] else "textured"
         assert f"material variation choose ({chosen} in this basis chosen on 4 held-out photos: uniform " in page

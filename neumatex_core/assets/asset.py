@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from neumatex_core.assets.bake import TexelSamples, bake, rasterize_uv
-from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_pbr
+from neumatex_core.assets.pbr_fit import METHOD, PBRFitConfig, fit_pbr
 from neumatex_core.assets.uv_unwrap import unwrap
 from neumatex_core.fields.decoders import MaterialDecoder
 from neumatex_core.fields.neural_field import TriplaneMaterialField
@@ -40,8 +40,10 @@ class MaterialAsset:
     """name; mesh (object space, in the unit sphere, with uvs and vertex normals); basis (frozen);
     material_texture [R, R, 3 + K] (rho_d in [0, 1], latent [K] in [-1, 1]); pbr_texture [R, R, 5] (base colour,
     roughness, metallic; 8-bit exact); triplane + decoders ("material" required with a triplane; "uncertainty", "pbr"
-    optional) or None for a UV-texture asset; texel_mask [R, R] (texels on the surface); previews name -> display image
-    [H, W, 3]; centre/scale: the capture mesh's normalisation (p_object = (p_capture - centre) * scale), if known."""
+    optional) or None for a UV-texture asset; texel_mask [R, R] (texels on the surface); pbr_fit_loss: the fallback
+    fit's loss (nan where the fallback was not fitted to the neural material: `pbr_method` says how it was made);
+    previews name -> display image [H, W, 3]; centre/scale: the capture mesh's normalisation (p_object =
+    (p_capture - centre) * scale), if known."""
 
     name: str
     mesh: Mesh
@@ -58,6 +60,7 @@ class MaterialAsset:
     timings: dict[str, float] = field(default_factory=dict)
     centre: list[float] | None = None
     scale: float | None = None
+    pbr_method: str = METHOD  # how the fallback was made (the manifest's pbr_fallback.method)
 
     @property
     def field_kind(self) -> FieldKind:

@@ -125,7 +125,9 @@ class TTOResult:
     problem's mesh; exposure: with config.photo_exposure, each photo's fitted exposure multiplier on top of its
     given one (unitless, geometric mean 1; `ExposureFit`), else None; selection: with config.select_anchor or
     select_uniform, the held-out photos' PSNR (dB) of the two candidates and which was kept, with
-    config.alternative_basis the scores that chose the basis (tto/pbr_start.py)."""
+    config.alternative_basis the scores that chose the basis (tto/pbr_start.py); pbr_solution: with init="pbr", the
+    PBR phase's own result that the neural phase started from (fitted on the photos the choice did not hold out), a
+    candidate for the asset's PBR fallback (`tto/fallback_choice.py`)."""
 
     params: Parametrisation
     history: list[dict[str, float]] = field(default_factory=list)
@@ -138,6 +140,7 @@ class TTOResult:
     # with config.alternative_basis: the basis the neural material is in when the TTO switched to it (None: the
     # basis it was given; tto/pbr_start.py `choose_basis`)
     basis: NeuralBasis | None = None
+    pbr_solution: Parametrisation | None = None
 
 
 def _neural_gbuffer(prediction: LMRMPrediction, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -190,6 +190,7 @@ def solve(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, photos: PhotoSe
                            checkpoint("checkpoint.pt"), start)  # fmt: skip
     result.selection = {**result.selection, **start.record}
     result.basis = start.basis if start.switched else None
+    result.pbr_solution = first.params
     return result
 
 
@@ -676,4 +677,6 @@ def _solve_selecting(config: TTOConfig, mesh: Mesh, envmap: EnvironmentMap, phot
                       checkpoint_dir)  # fmt: skip
     final.selection = selection
     final.basis = final_basis if final_basis.basis_id != basis.basis_id else final.basis
+    if first is not None and start is not None and config.select_reuse_start:
+        final.pbr_solution = first.params  # else the plain `solve` above set its own
     return final
