@@ -5,7 +5,6 @@ asset package keeps how its fallback was made."""
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import pytest
 import torch
@@ -78,7 +77,7 @@ def test_the_fallback_that_renders_the_held_out_photos_better_ships(scene, tmp_p
     assert taken.metrics["fallback_from_pbr_phase"] == 1.0
     assert taken.metrics["fallback_psnr_pbr_phase"] > taken.metrics["fallback_psnr_fit"] + 3
     assert torch.equal(taken.pbr_texture, bake_pbr_solution(asset, Uniform(GOLD)))
-    assert taken.pbr_method == PBR_PHASE_METHOD and math.isnan(taken.pbr_fit_loss)
+    assert taken.pbr_method == PBR_PHASE_METHOD and taken.pbr_fit_loss == wrong.pbr_fit_loss  # the fit's loss
     assert wrong.pbr_method == METHOD and "fallback_from_pbr_phase" not in wrong.metrics  # the input is untouched
 
     right = dataclasses.replace(asset, pbr_texture=quantize_pbr(GOLD.expand_as(asset.pbr_texture)))
@@ -92,9 +91,9 @@ def test_the_fallback_that_renders_the_held_out_photos_better_ships(scene, tmp_p
     margin = taken.metrics["fallback_psnr_pbr_phase"] - taken.metrics["fallback_psnr_fit"] + 0.01
     assert choose_fallback(wrong, Uniform(GOLD), photos, envmap, tonemap, config, margin).pbr_method == METHOD
 
-    # the package keeps how its fallback was made; a fallback from the PBR phase has no fit loss
+    # the package keeps how its fallback was made
     write_asset(taken, tmp_path / "asset")
     again = read_asset(tmp_path / "asset")
-    assert again.pbr_method == PBR_PHASE_METHOD and math.isnan(again.pbr_fit_loss)
+    assert again.pbr_method == PBR_PHASE_METHOD and again.pbr_fit_loss == taken.pbr_fit_loss
     assert torch.equal(again.pbr_texture, taken.pbr_texture)
     assert again.metrics["fallback_from_pbr_phase"] == 1.0

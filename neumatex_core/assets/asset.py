@@ -40,10 +40,10 @@ class MaterialAsset:
     """name; mesh (object space, in the unit sphere, with uvs and vertex normals); basis (frozen);
     material_texture [R, R, 3 + K] (rho_d in [0, 1], latent [K] in [-1, 1]); pbr_texture [R, R, 5] (base colour,
     roughness, metallic; 8-bit exact); triplane + decoders ("material" required with a triplane; "uncertainty", "pbr"
-    optional) or None for a UV-texture asset; texel_mask [R, R] (texels on the surface); pbr_fit_loss: the fallback
-    fit's loss (nan where the fallback was not fitted to the neural material: `pbr_method` says how it was made);
-    previews name -> display image [H, W, 3]; centre/scale: the capture mesh's normalisation (p_object =
-    (p_capture - centre) * scale), if known."""
+    optional) or None for a UV-texture asset; texel_mask [R, R] (texels on the surface); pbr_fit_loss: the loss of the
+    fallback's fit to the neural material (`pbr_method` says whether the fallback is that fit); previews name ->
+    display image [H, W, 3]; centre/scale: the capture mesh's normalisation (p_object = (p_capture - centre) *
+    scale), if known."""
 
     name: str
     mesh: Mesh

@@ -77,7 +77,7 @@ class FallbackRecord(BaseModel):
     gltf: str
     usd: str
     method: str
-    fit_loss: float | None  # None: the fallback was not fitted to the neural material (method says how it was made)
+    fit_loss: float  # the loss of the fit to the neural material (method says whether the fallback is that fit)
 
 
 class Manifest(BaseModel):

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import importlib.metadata
-import math
 import os
 import shutil
 import tempfile
@@ -223,7 +222,7 @@ def _write_folder(asset: MaterialAsset, root: Path) -> Manifest:
         textures=TextureRecord(resolution=asset.texture_resolution, base_color=BASE_COLOR, latent=LATENT, mask=MASK,
                                pbr_base_color=PBR_BASE, pbr_metallic_roughness=PBR_MR),
         pbr_fallback=FallbackRecord(gltf=GLB, usd=USD, method=asset.pbr_method,
-                                    fit_loss=None if math.isnan(asset.pbr_fit_loss) else asset.pbr_fit_loss),
+                                    fit_loss=asset.pbr_fit_loss),
         previews=previews,
         provenance=asset.provenance,
         metrics=asset.metrics,
@@ -348,9 +347,8 @@ def _read_root(root: Path, label: str, basis: NeuralBasis) -> MaterialAsset:
     previews = {}
     for rel in manifest.previews:
         previews[Path(rel).stem] = read_png8(root / rel, f"{label}/{rel}")[..., :3].astype(np.float32) / 255
-    fit_loss = manifest.pbr_fallback.fit_loss
     return MaterialAsset(manifest.name, mesh, basis, material, pbr, mask, triplane, decoders,
-                         math.nan if fit_loss is None else fit_loss, previews, dict(manifest.provenance),
+                         manifest.pbr_fallback.fit_loss, previews, dict(manifest.provenance),
                          dict(manifest.metrics), dict(manifest.timings), manifest.mesh.centre, manifest.mesh.scale,
                          manifest.pbr_fallback.method)  # fmt: skip
 

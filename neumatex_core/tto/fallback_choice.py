@@ -33,8 +33,8 @@ from neumatex_core.tto.data import PhotoSet
 from neumatex_core.tto.params import PBRUV, Parametrisation
 from neumatex_core.tto.pbr_start import photo_psnr
 
-PBR_PHASE_METHOD = ("the TTO's PBR phase (the PBR baseline's TTO on the photos), baked; chosen over the fit to the "
-                    "neural material on held-out photos (neumatex_core/tto/fallback_choice.py)")
+PBR_PHASE_METHOD = ("the TTO's PBR phase (the PBR baseline's TTO on the photos), baked; chosen on held-out photos over "
+                    "the fit to the neural material, whose loss is fit_loss (neumatex_core/tto/fallback_choice.py)")
 
 
 def bake_pbr_solution(asset: MaterialAsset, solution: Parametrisation) -> torch.Tensor:
@@ -58,7 +58,8 @@ def choose_fallback(asset: MaterialAsset, solution: Parametrisation, held_out: P
                     tonemap: Tonemap, config: TTOConfig, margin_db: float = 0.0) -> MaterialAsset:
     """The asset with the better of its fitted fallback and the PBR phase's `solution` baked, as scored on the
     held-out photos (`held_out`, on the asset's mesh: the TTO's normalised frame); the scores and the choice go to
-    its metrics (fallback_psnr_fit, fallback_psnr_pbr_phase: dB; fallback_from_pbr_phase: 1 or 0)."""
+    its metrics (fallback_psnr_fit, fallback_psnr_pbr_phase: dB; fallback_from_pbr_phase: 1 or 0) and the PBR
+    phase's to its `pbr_method` (`pbr_fit_loss` stays the fit's, the candidate it was chosen over)."""
     candidate = bake_pbr_solution(asset, solution)
     fit = fallback_score(asset.pbr_texture, asset, held_out, envmap, tonemap, config)
     phase = fallback_score(candidate, asset, held_out, envmap, tonemap, config)
@@ -67,5 +68,4 @@ def choose_fallback(asset: MaterialAsset, solution: Parametrisation, held_out: P
                "fallback_from_pbr_phase": float(taken)}  # fmt: skip
     if not taken:
         return dataclasses.replace(asset, metrics=metrics)
-    return dataclasses.replace(asset, pbr_texture=candidate, pbr_fit_loss=float("nan"), pbr_method=PBR_PHASE_METHOD,
-                               metrics=metrics)  # fmt: skip
+    return dataclasses.replace(asset, pbr_texture=candidate, pbr_method=PBR_PHASE_METHOD, metrics=metrics)
