@@ -6,8 +6,9 @@ Every asset ships a PBR fallback (GLB / USD, for engines). `assets/pbr_fit.py` f
 texel by texel, on BSDF values; where the neural material holds what PBR cannot (a metal's hazy second lobe, a
 dusty layer), the closest PBR BSDF can render further from the photographs than a PBR material fitted to the
 photographs themselves. The TTO's first phase is exactly such a fit (`tto/pbr_start.py`, the PBR baseline's TTO that
-the neural phase starts from). Against Blender Cycles' photographs the fit from the neural material beat it on
-coat, sheen and diffuse captures and lost by 1-3 dB on every metal (docs/design-notes.md, items 102-103).
+the neural phase starts from). Against Blender Cycles' photographs the fit to the neural material beat the PBR
+baseline's TTO on coat, sheen and diffuse captures and lost to it by 1-3 dB on every metal; chosen as below, the
+fallback beats it on all four (docs/design-notes.md, items 102 and 103).
 
 So both candidates are baked to the asset's fallback textures (8-bit, as the files hold them) and rendered on the
 photos that the TTO's choice held out (`validation_frames`), scored clean (`photo_psnr`, one seed for both); the PBR
