@@ -97,9 +97,9 @@ def choice_scores(capture: Path, asset: MaterialAsset, fit_scores: dict[str, Any
     t0 = time.perf_counter()
     chosen = choose_fallback(asset, result.pbr_solution, held, envmap, tonemap, tto)
     seconds = round(time.perf_counter() - t0, 1)
-    phase = bake_pbr_solution(asset, result.pbr_solution)
-    phase_scores = clean_scores(capture, PBRTextureField(phase), asset.mesh, clean_spp, bounces)
     taken = bool(chosen.metrics["fallback_from_pbr_phase"])
+    phase = chosen.pbr_texture if taken else bake_pbr_solution(asset, result.pbr_solution)  # baked once where taken
+    phase_scores = clean_scores(capture, PBRTextureField(phase), asset.mesh, clean_spp, bounces)
     choice = {k: chosen.metrics[k] for k in ("fallback_psnr_fit", "fallback_psnr_pbr_phase", "fallback_from_pbr_phase")}
     scores = phase_scores if taken else {k: v for k, v in fit_scores.items() if k not in ("fit_s", "fit_loss")}
     return {PBR_PHASE: phase_scores, CHOSEN: {"choice_s": seconds, **choice, **scores}}

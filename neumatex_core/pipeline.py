@@ -827,8 +827,9 @@ def _stage_export(capture: Path, work: Path, config: ExtractConfig, progress: Pr
                  + f" of {tto.pixels} pixels x {tto.spp} spp, {tto.max_bounces} bounces; field {tto.field}, "
                  f"init {tto.init}, reg {tto.reg}; material variation {config.variation}"
                  + _choice_note(stage_metrics["tto"]) + _basis_note(stage_metrics["tto"]) + "."]  # fmt: skip
-        if _fallback_note(asset.metrics):
-            notes.append(_fallback_note(asset.metrics))
+        fallback_note = _fallback_note(asset.metrics)
+        if fallback_note:
+            notes.append(fallback_note)
         if not record["trained"]:
             notes.append("No trained LMRM checkpoint was available: the triplane started from random values and the "
                          "TTO ran without the uncertainty regulariser.")  # fmt: skip
