@@ -3,6 +3,8 @@ reaching the triplane and the UV textures (what TTO optimises)."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
 import torch
@@ -104,6 +106,28 @@ def test_a_material_decoder_is_resized_for_a_basis_of_another_latent_size():
     rebuilt.load_state_dict(wide.state_dict())
     assert wide.architecture()["latent_dim"] == 16 and "latent_dim" not in dec.architecture()
     assert module_id(rebuilt) == module_id(wide)
+
+
+def test_resized_decoder_copies_made_in_threads_are_the_same():
+    """The TTO's candidates make their decoder copies side by side (`side_by_side`): every copy made in threads is
+    the one made alone, and the added rows are a fresh nn.Linear's after torch.manual_seed(seed), as they were when
+    the copy seeded torch's global generator (which, shared by the threads, gave about a third of the copies other
+    rows and changed the demo's choice of material from one run to the next)."""
+    torch.manual_seed(0)
+    dec = MaterialDecoder(24)
+    alone = dec.with_latent_dim(16).state_dict()
+    torch.manual_seed(0)
+    fresh = torch.nn.Linear(dec.hidden, 3 + 16).state_dict()
+    last = f"net.{len(dec.net) - 1}.weight"
+    assert torch.equal(alone[last][9:], fresh["weight"][9:])
+
+    def copy_matches(_: int) -> bool:
+        made = dec.with_latent_dim(16).state_dict()
+        return all(torch.equal(made[k], v) for k, v in alone.items())
+
+    with ThreadPoolExecutor(4) as pool:
+        matches = list(pool.map(copy_matches, range(200)))
+    assert all(matches), f"{matches.count(False)} of 200 copies made in threads differ"
 
 
 def test_sample_uv_convention():

@@ -15,6 +15,7 @@ SHA-256 of its weights: an asset records it and the reader checks it.
 from __future__ import annotations
 
 import hashlib
+import math
 from typing import Any
 
 import torch
@@ -60,9 +61,7 @@ class MaterialDecoder(_Decoder):
         (from `seed`). Another basis's latents mean something else, so what the kept rows carry over is the
         features' scale: the PBR start fits the planes to the new basis's latents (tto/pbr_start.py)."""
         last = len(self.net) - 1  # the output layer's index in the stack
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
-            fresh = nn.Linear(self.hidden, 3 + latent_dim).state_dict()
+        fresh = _fresh_linear(self.hidden, 3 + latent_dim, seed)
         keep = min(latent_dim, self.latent_dim) + 3
         state = self.net.state_dict()
         for name in ("weight", "bias"):
@@ -111,6 +110,18 @@ class FamilyDecoder(_Decoder):
 
 # the decoders an asset may hold (assets/package.py); the family head is the LMRM's training signal only
 DECODERS: dict[str, type[_Decoder]] = {cls.kind: cls for cls in (MaterialDecoder, UncertaintyDecoder, PBRDecoder)}
+
+
+def _fresh_linear(in_features: int, out_features: int, seed: int) -> dict[str, torch.Tensor]:
+    """The state of a fresh nn.Linear(in_features, out_features) drawn from `seed`: the same bits as after
+    torch.manual_seed(seed), but from a private generator. Seeding torch's global generator is not safe in threads:
+    the TTO's candidates make their decoder copies side by side, and interleaved draws gave a copy other rows in
+    about a third of the copies (the demo's choice of material then changed from one run to the next)."""
+    g = torch.Generator().manual_seed(seed)
+    weight = torch.empty(out_features, in_features)
+    nn.init.kaiming_uniform_(weight, a=math.sqrt(5), generator=g)  # nn.Linear.reset_parameters, in its order
+    bound = 1 / math.sqrt(in_features)
+    return {"weight": weight, "bias": torch.empty(out_features).uniform_(-bound, bound, generator=g)}
 
 
 def state_hash(module: nn.Module) -> str:
