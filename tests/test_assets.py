@@ -22,7 +22,7 @@ from neumatex_core.assets import FORMAT_VERSION, AssetError, asset_from_textures
 from neumatex_core.assets.bake import rasterize_uv
 from neumatex_core.assets.export import export_asset
 from neumatex_core.assets.package import read_png8
-from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_targets, pbr_albedo, pbr_targets
+from neumatex_core.assets.pbr_fit import PBRFitConfig, fit_targets, pbr_albedo, pbr_targets, quantize_pbr
 from neumatex_core.assets.render import make_previews, render_asset
 from neumatex_core.geometry.mesh import load_mesh
 from neumatex_core.imageio import read_image
@@ -295,6 +295,27 @@ def test_pbr_fit_directions_and_chunks(basis):
     wi, wo = fit_directions()
     sparse_loss = _total_loss(sparse, wi, wo, torch.log(EPS + target), torch.log(EPS + albedo))
     assert float((sparse_loss - dense_loss).mean()) > 0, (sparse_loss, dense_loss)
+
+
+def test_pbr_fit_fits_the_surface_texels_and_fills_the_rest_from_them(basis):
+    """With a mask only its texels' materials are fitted, each bit for bit as without the mask, and the others
+    are filled from them as the neural texture's padding was (dilated, then quantised), not fitted: renders read
+    only the surface, and the padding's neighbour means took 40% of the demo's fit."""
+    from neumatex_core.assets.pbr_fit import fit_pbr
+
+    g = torch.Generator().manual_seed(5)
+    texture = torch.cat([torch.rand(6, 6, 3, generator=g),
+                         torch.rand(6, 6, basis.arch.latent_dim, generator=g) * 2 - 1], dim=-1)  # fmt: skip
+    mask = torch.zeros(6, 6, dtype=torch.bool)
+    mask[1:4, 1:3] = True
+    texture[5, 5] = texture[2, 2] + 1e-3  # one distinct material on and off the surface: fitted at both's mean
+    fitted, loss = fit_pbr(basis, texture, mask)
+    whole, _ = fit_pbr(basis, texture)
+    assert torch.equal(fitted[mask], whole[mask])
+    assert loss == pytest.approx(fit_pbr(basis, texture[1:4, 1:3])[1], rel=1e-6)
+    assert torch.equal(fitted[0, 0], whole[1, 1])  # the corner's only filled neighbour
+    assert torch.equal(fitted[~mask], quantize_pbr(fitted[~mask]))  # what 8-bit files hold
+    assert not torch.equal(fitted[0, 3:5], whole[0, 3:5])  # the padding is not fitted
 
 
 def test_pbr_fit_grid_search_is_the_same_in_any_chunk(basis):

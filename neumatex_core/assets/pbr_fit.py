@@ -38,6 +38,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from neumatex_core.assets.bake import dilate
 from neumatex_core.capture.tonemap import srgb_eotf, srgb_oetf
 from neumatex_core.materials.base import cosine_sample
 from neumatex_core.materials.microfacet import ggx_eval
@@ -335,7 +336,11 @@ def fit_neural(basis: NeuralBasis, values: torch.Tensor, cfg: PBRFitConfig) -> t
 def fit_pbr(basis: NeuralBasis, material: torch.Tensor, mask: torch.Tensor | None = None,
             config: PBRFitConfig | None = None) -> tuple[torch.Tensor, float]:
     """(PBR texture [H, W, 5] (base colour, roughness, metallic) quantised to 8 bits, mean log loss over the texels
-    in mask [H, W] (all if None)) fitted to a neural material texture [H, W, 3 + L] (rho_d, latent [L])."""
+    in mask [H, W] (all if None)) fitted to a neural material texture [H, W, 3 + L] (rho_d, latent [L]). With a
+    mask only the distinct materials of its texels are fitted (the surface's: renders read no other), each as
+    without a mask, and the other texels are filled from them as the neural texture's were (`bake.dilate`, then
+    quantised): the dilated texels are means of their neighbours, distinct materials each, and fitting them took
+    40% of the demo's fit."""
     cfg = config or PBRFitConfig()
     h, w, c = material.shape
     flat = material.reshape(-1, c).detach().float()
@@ -344,18 +349,23 @@ def fit_pbr(basis: NeuralBasis, material: torch.Tensor, mask: torch.Tensor | Non
     inverse_t = torch.from_numpy(inverse.reshape(-1)).to(material.device)
     sums = torch.zeros(len(uniq), c, device=material.device).index_add_(0, inverse_t, flat)
     counts = torch.zeros(len(uniq), device=material.device).index_add_(0, inverse_t, torch.ones_like(flat[:, 0]))
-    values = sums / counts.unsqueeze(-1)
+    values = sums / counts.unsqueeze(-1)  # each distinct material at all its texels' mean, surface or not
+    inside = None if mask is None or not bool(mask.any()) else mask.reshape(-1).to(material.device)
+    needed = torch.arange(len(uniq), device=material.device) if inside is None else inverse_t[inside].unique()
     params, losses = [], []
-    for s in range(0, values.shape[0], cfg.chunk):
-        chunk = values[s:s + cfg.chunk]
-        p, loss = fit_neural(basis, chunk, cfg)
+    for s in range(0, needed.shape[0], cfg.chunk):
+        p, loss = fit_neural(basis, values[needed[s:s + cfg.chunk]], cfg)
         params.append(p)
         losses.append(loss)
-    texture = torch.cat(params)[inverse_t].reshape(h, w, 5)
-    per_texel = torch.cat(losses)[inverse_t]
-    if mask is not None:
-        per_texel = per_texel[mask.reshape(-1).to(per_texel.device)]
-    return texture, float(per_texel.mean())
+    fitted = torch.zeros(len(uniq), 5, device=material.device)
+    fitted_loss = torch.zeros(len(uniq), device=material.device)
+    fitted[needed], fitted_loss[needed] = torch.cat(params), torch.cat(losses)
+    texture, per_texel = fitted[inverse_t].reshape(h, w, 5), fitted_loss[inverse_t]
+    if inside is None:
+        return texture, float(per_texel.mean())
+    surface = inside.view(h, w)
+    filled = quantize_pbr(dilate(texture, surface))
+    return torch.where(surface.unsqueeze(-1), texture, filled), float(per_texel[inside].mean())
 
 
 def pbr_targets(params: torch.Tensor, cosine: int = N_COSINE) -> torch.Tensor:
