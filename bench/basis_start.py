@@ -15,6 +15,13 @@ stopped run keeps the finished ones).
 
     NEUMATEX_SHARED=../shared .venv/bin/python bench/basis_start.py runs/cycles/teapot-{metal,coat} \\
         data/benchmark-test/test-000017        # about 1.5-2.5 minutes per capture on one thread
+
+`--fits STEPS@LR,...` fits each start also with those Adam settings (`TTOConfig.pbr_fit_steps`, `pbr_fit_lr`),
+`--bases` in the bases named (ids or their short names v1, v6); each is paired per capture with the preset's own fit
+(the reference, measured in the same run): its held-out score minus the reference's, its G-buffer error (the fit's
+MSE) and its seconds over the reference's (docs/design-notes.md, item 104):
+
+    .venv/bin/python bench/basis_start.py --bases v1,v6 --fits 500@0.2,1500@0.2 examples/coat-teapot runs/cycles/*
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -59,8 +67,13 @@ def start_config(tto: TTOConfig) -> TTOConfig:
                    alternative_basis="")  # fmt: skip
 
 
-def score_capture(capture: Path) -> dict[str, Any]:
-    """{"capture", "pbr": dB, <basis id>: dB of its start, "takes": the basis the extraction's rule takes}."""
+Fit = tuple[int, float]  # (Adam steps, learning rate) of the start's fit
+
+
+def score_capture(capture: Path, bases: list[str], fits: list[Fit]) -> dict[str, Any]:
+    """{"capture", "pbr": dB, <basis id>: dB of its start, "takes": the basis the extraction's rule takes (where
+    both bases it compares were fitted), "fits": {"STEPS@LR": {<basis id>: dB, <basis id>_mse, <basis id>_s}} for
+    the preset's own fit and each of `fits`}."""
     config, pred, cap, mesh, photos = prepared_capture(capture, work_dir(capture))
     tto, envmap = config.tto_config(), harness_envmap(cap)
     held = validation_frames(photos.cameras, tto.validation_photos, mesh.bounding_sphere()[0])
@@ -70,37 +83,99 @@ def score_capture(capture: Path) -> dict[str, Any]:
     first = _pbr_phase(tto, mesh, envmap, fit, cap.tonemap, pred, load_basis(), True, None, None, None)
     row: dict[str, Any] = {"capture": str(capture),
                            "pbr": photo_psnr(first.params, first.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
-                                             tto.seed + 1)}  # fmt: skip
+                                             tto.seed + 1), "fits": {}}  # fmt: skip
     starts = start_config(tto)
-    for basis_id in installed_bases():
-        basis = load_basis(basis_id=basis_id)
-        problem = build_problem(starts, mesh, envmap, fit, cap.tonemap, pred, basis, True)
-        assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
-        fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, tto.seed, tto.pbr_fit_steps,
-                         tto.pbr_bsdf_fit_steps, tto.pbr_fit_lr, tto.pbr_fit_batch)  # fmt: skip
-        row[basis_id] = photo_psnr(problem.params, problem.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
-                                   tto.seed + 1)  # fmt: skip
+    preset: Fit = (tto.pbr_fit_steps, tto.pbr_fit_lr)
+    row["reference"] = fit_name(preset)
+    for steps, lr in [preset, *(f for f in fits if f != preset)]:
+        scores: dict[str, float] = {}
+        for basis_id in bases:
+            basis = load_basis(basis_id=basis_id)
+            problem = build_problem(starts, mesh, envmap, fit, cap.tonemap, pred, basis, True)
+            assert isinstance(problem.params, NeuralTriplane) and isinstance(first.params, PBRTriplane)
+            t1 = time.perf_counter()
+            mse = fit_start_to_pbr(problem.params, first.params, problem.mesh, basis, tto.seed, steps,
+                                   tto.pbr_bsdf_fit_steps, lr, tto.pbr_fit_batch)  # fmt: skip
+            scores[f"{basis_id}_s"], scores[f"{basis_id}_mse"] = time.perf_counter() - t1, mse
+            scores[basis_id] = photo_psnr(problem.params, problem.mesh or mesh, envmap, held_photos, cap.tonemap, tto,
+                                          tto.seed + 1)  # fmt: skip
+        row["fits"][fit_name((steps, lr))] = scores
+    row.update({b: row["fits"][fit_name(preset)][b] for b in bases})
     alternative = tto.alternative_basis or ALTERNATIVE_BASIS
-    wins = alternative_wins(row["pbr"], row[load_basis().basis_id], row[alternative], tto.basis_margin_db)
-    row["takes"] = alternative if wins else "default"
+    if load_basis().basis_id in row and alternative in row:
+        wins = alternative_wins(row["pbr"], row[load_basis().basis_id], row[alternative], tto.basis_margin_db)
+        row["takes"] = alternative if wins else "default"
     row["seconds"] = time.perf_counter() - t0
     return row
+
+
+def fit_name(fit: Fit) -> str:
+    return f"{fit[0]}@{fit[1]:g}"
+
+
+def parse_fits(text: str) -> list[Fit]:
+    """"500@0.2,1500@0.2" -> [(500, 0.2), (1500, 0.2)]."""
+    fits = []
+    for item in filter(None, text.split(",")):
+        steps, _, lr = item.partition("@")
+        fits.append((int(steps), float(lr)))
+    return fits
+
+
+def basis_ids(text: str) -> list[str]:
+    """Installed basis ids from ids or short names ("v1,v6"); all installed ones for ""."""
+    installed = list(installed_bases())
+    if not text:
+        return installed
+    picked = []
+    for name in text.split(","):
+        found = [b for b in installed if b == name or b.split("-")[2] == name]
+        if not found:
+            raise SystemExit(f"basis {name!r} is not installed (installed: {', '.join(installed)})")
+        picked.append(found[0])
+    return picked
+
+
+def paired_fits(rows: list[dict[str, Any]], bases: list[str], reference: str) -> list[str]:
+    """Markdown lines: per fit and basis, mean +- standard error over the rows of its held-out score minus the
+    reference fit's (dB), its MSE and seconds over the reference's (ratios of the means)."""
+    lines = ["| fit | basis | held-out dB - reference | captures ahead | MSE / reference | seconds / reference |",
+             "|---|---|---|---|---|---|"]
+    for name in rows[0]["fits"]:
+        if name == reference:
+            continue
+        for b in bases:
+            d = np.array([r["fits"][name][b] - r["fits"][reference][b] for r in rows])
+            se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
+            mse = np.mean([r["fits"][name][f"{b}_mse"] for r in rows]) / np.mean(
+                [r["fits"][reference][f"{b}_mse"] for r in rows])
+            sec = np.mean([r["fits"][name][f"{b}_s"] for r in rows]) / np.mean(
+                [r["fits"][reference][f"{b}_s"] for r in rows])
+            lines.append(f"| {name} | {b.split('-')[2]} | {d.mean():+.2f} +- {se:.2f} | {int((d > 0).sum())}/{len(d)} "
+                         f"| {mse:.2f} | {sec:.2f} |")
+    return lines
 
 
 def main() -> int:
     parser = argument_parser(__doc__)
     parser.add_argument("captures", nargs="+", type=Path)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--bases", default="", help="bases to fit the start in: ids or short names (v1,v6); all")
+    parser.add_argument("--fits", default="", help="STEPS@LR,...: the start's fit also with these Adam settings")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    bases = list(installed_bases())
+    bases, fits = basis_ids(args.bases), parse_fits(args.fits)
     print("| capture | PBR | " + " | ".join(b.split("-")[2] for b in bases) + " | the rule takes |")
     print("|---" * (len(bases) + 3) + "|")
+    rows = []
     for capture in args.captures:
-        row = score_capture(capture)
+        row = score_capture(capture, bases, fits)
+        rows.append(row)
         path = write_result("basis_start", {"bases": bases, "rows": [row]})
         print(f"| {capture.name} | {row['pbr']:.2f} | " + " | ".join(f"{row[b]:.2f}" for b in bases)
-              + f" | {row['takes']} |", flush=True)  # fmt: skip
+              + f" | {row.get('takes', '-')} |", flush=True)  # fmt: skip
+    if fits:
+        print("\n".join(["", *paired_fits(rows, bases, rows[0]["reference"])]))
     print(f"appended to {path}")
     return 0
 

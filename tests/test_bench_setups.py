@@ -55,6 +55,30 @@ def test_the_basis_start_benchmarks_problem_is_valid_and_its_rule_has_an_alterna
     assert default.alternative_basis == "" and ALTERNATIVE_BASIS in installed_bases()
 
 
+def test_the_basis_start_benchmarks_fits_are_named_and_paired_with_the_presets() -> None:
+    """`--fits 500@0.2,1500@0.2` and `--bases v1,v6` parse to settings and installed ids; each fit's line pairs its
+    held-out scores with the reference fit's per capture (mean and standard error of the differences) and gives its
+    MSE and seconds over the reference's."""
+    bench = bench_module("basis_start")
+    assert bench.parse_fits("500@0.2,1500@0.2") == [(500, 0.2), (1500, 0.2)] and bench.parse_fits("") == []
+    v1, v6 = bench.basis_ids("v1,v6")
+    assert v1 == load_basis().basis_id and v6.split("-")[2] == "v6" and v6 in installed_bases()
+    with pytest.raises(SystemExit, match="not installed"):
+        bench.basis_ids("v99")
+    reference, fast = bench.fit_name((1500, 0.05)), bench.fit_name((500, 0.2))
+    assert (reference, fast) == ("1500@0.05", "500@0.2")
+
+    def scores(db: float, mse: float, seconds: float) -> dict[str, float]:
+        return {v1: db, f"{v1}_mse": mse, f"{v1}_s": seconds}
+
+    rows = [{"fits": {reference: scores(20.0, 0.002, 18.0), fast: scores(21.0, 0.001, 6.0)}},
+            {"fits": {reference: scores(22.0, 0.002, 18.0), fast: scores(21.0, 0.003, 6.0)}},
+            {"fits": {reference: scores(24.0, 0.002, 18.0), fast: scores(27.0, 0.002, 6.0)}}]
+    lines = bench.paired_fits(rows, [v1], reference)
+    # differences +1, -1, +3: mean +1, standard error 2 / sqrt(3); MSE 0.002 / 0.002, seconds 6 / 18
+    assert lines[2] == "| 500@0.2 | v1 | +1.00 +- 1.15 | 2/3 | 1.00 | 0.33 |", lines
+
+
 def test_the_seeds_mixture_takes_each_runs_material_with_equal_odds_and_averages_their_gbuffers() -> None:
     basis = load_basis()
     fields = []

@@ -94,6 +94,8 @@ ROW_NAMES = {
     "default_lmrm_start_anchor_2": "the same, anchored (2) where the LMRM made the start",
     "default_lmrm_start_full": "the default, its neural start nearly all the LMRM's prediction, anchored (0.1) to it",
     "default_choose_lmrm_start": "the default, choosing on held-out photos between its start and the LMRM's",
+    "default_fit_lr02_500": "the default, its start fitted at rate 0.2 in 500 steps (a third)",
+    "default_fit_lr02": "the default, its start fitted at rate 0.2 (four times the default's)",
     TRUTH: "reference: the ground-truth material, same scoring (Monte Carlo noise ceiling)",
 }  # fmt: skip
 TABLE_METRICS = {  # the clean columns show only when some result has them (pages of older runs stay as they were)
@@ -130,6 +132,8 @@ TABLE_METRICS = {  # the clean columns show only when some result has them (page
                         "psnr_relight_clean", "tto_minutes"),
     "choose_lmrm_start": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents",
                           "psnr_relight", "psnr_relight_clean", "tto_minutes"),
+    "start_fit": ("psnr_pathtrace", "psnr_pathtrace_clean", "psnr_basecolor", "psnr_latents", "psnr_relight",
+                  "psnr_relight_clean", "tto_minutes"),
 }
 TABLE_TITLES = {
     "table1": "Table 1: PBR baseline vs neural material",
@@ -148,6 +152,7 @@ TABLE_TITLES = {
     "lmrm_start": "The default's neural start blended with the LMRM's prediction by their precisions (issue 14)",
     "lmrm_start_full": "The default's neural start taken from the LMRM and anchored to it, against PBR (issue 14)",
     "choose_lmrm_start": "The default choosing between its start and the LMRM's on held-out photos (issue 14)",
+    "start_fit": "The default with its start's fit at four times the learning rate (issue 14)",
 }  # fmt: skip
 FIGURE_VARIANTS = ("ours", "pbr")  # the figure grid's columns; the default's join them where it was run
 FIGURE_OPTIONAL = (DEFAULT_VARIANT, "t3a_no_tto")
