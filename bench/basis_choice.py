@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS_DIR, argument_parser, write_result  # noqa: E402
+from common import RESULTS_DIR, argument_parser, mean_se, write_result  # noqa: E402
 from variants_clean import (  # noqa: E402
     basis_choice_result,
     basis_sides,
@@ -47,12 +47,6 @@ from neumatex_core.eval.variants import DEFAULT_VARIANT  # noqa: E402
 CYCLES_STAND_IN = {"pbr_start_default_settle_decdb_slr10_s900_m0": "pbr_start_default_settle_decdb_slr10_s900"}
 PAGE_METRICS = ("psnr_pathtrace_clean", "psnr_relight_clean", "psnr_basecolor")
 CYCLES_METRICS = ("photos_clean_db", "relit_clean_db")
-
-
-def mean_se(values: list[float]) -> tuple[float, float]:
-    """Mean and its standard error (nan with fewer than two values)."""
-    a = np.asarray(values, dtype=float)
-    return float(a.mean()), float(a.std(ddof=1) / math.sqrt(len(a))) if len(a) > 1 else math.nan
 
 
 def page_table(variant: str, sides: tuple[str, str], page: Path, before: str = "") -> dict[str, Any]:

@@ -37,7 +37,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import argument_parser, prepared_capture, write_result  # noqa: E402
+from common import argument_parser, mean_se, prepared_capture, write_result  # noqa: E402
 
 from neumatex_core.eval.references import harness_envmap  # noqa: E402
 from neumatex_core.materials.neural_basis import installed_bases, load_basis  # noqa: E402
@@ -146,12 +146,12 @@ def paired_fits(rows: list[dict[str, Any]], bases: list[str], reference: str) ->
             continue
         for b in bases:
             d = np.array([r["fits"][name][b] - r["fits"][reference][b] for r in rows])
-            se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
+            mean, se = mean_se(d)
             mse = np.mean([r["fits"][name][f"{b}_mse"] for r in rows]) / np.mean(
                 [r["fits"][reference][f"{b}_mse"] for r in rows])
             sec = np.mean([r["fits"][name][f"{b}_s"] for r in rows]) / np.mean(
                 [r["fits"][reference][f"{b}_s"] for r in rows])
-            lines.append(f"| {name} | {b.split('-')[2]} | {d.mean():+.2f} +- {se:.2f} | {int((d > 0).sum())}/{len(d)} "
+            lines.append(f"| {name} | {b.split('-')[2]} | {mean:+.2f} +- {se:.2f} | {int((d > 0).sum())}/{len(d)} "
                          f"| {mse:.2f} | {sec:.2f} |")
     return lines
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import json
+import math
 import os
 import platform
 import statistics
@@ -19,6 +20,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -125,6 +128,12 @@ def argument_parser(doc: str | None) -> argparse.ArgumentParser:
     first, _, rest = (doc or "").strip().partition("\n\n")
     return argparse.ArgumentParser(description=" ".join(first.split()), epilog=rest or None,
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def mean_se(values: Any) -> tuple[float, float]:
+    """Mean and its standard error (nan with fewer than two values) of values (a list or an array)."""
+    a = np.asarray(values, dtype=float)
+    return float(a.mean()), float(a.std(ddof=1) / math.sqrt(len(a))) if len(a) > 1 else math.nan
 
 
 def write_result(name: str, record: dict[str, Any], device: str = "cpu") -> Path:

@@ -53,7 +53,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
-from common import RESULTS_DIR, argument_parser, cpu_model, prepared_capture, write_result  # noqa: E402
+from common import (  # noqa: E402
+    RESULTS_DIR,
+    argument_parser,
+    cpu_model,
+    mean_se,
+    prepared_capture,
+    write_result,
+)
 
 from neumatex_core.atomic import write_json_atomic  # noqa: E402
 from neumatex_core.capture import load_capture  # noqa: E402
@@ -289,7 +296,7 @@ def by_preset(rows: list[dict[str, Any]], variant: str = "neural", base: str = "
             n = np.array([r[variant][key] for r in group])
             p = np.array([r[base][key] for r in group])
             d = n - p
-            se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+            _, se = mean_se(d)
             entry[key] = {"neural": float(n.mean()), "pbr": float(p.mean()), "diff": float(d.mean()), "se": se,
                           "worst": float(d.min())}  # fmt: skip
             cells += [f"{n.mean():.2f} / {p.mean():.2f}", f"{d.mean():+.2f} +- {se:.2f} (worst {d.min():+.2f})"]

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import argument_parser, write_result  # noqa: E402
+from common import argument_parser, mean_se, write_result  # noqa: E402
 
 from neumatex_core.eval.harness import evaluate_variant  # noqa: E402
 from neumatex_core.eval.suite import select_objects  # noqa: E402
@@ -118,7 +118,7 @@ def summarise(results: Path, variant: str) -> int:
         d = np.array([a - b for a, b in pairs])
         if np.isnan(d).all():
             continue
-        se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float("nan")
+        _, se = mean_se(d)
         print(f"| {names[m]} | {np.mean([a for a, _ in pairs]):.2f} | {np.mean([b for _, b in pairs]):.2f} | "
               f"{np.mean(d):+.2f} +- {se:.2f} | {d[np.argmax(np.abs(d))]:+.2f} |")
     paired = sorted(set(latest) & set(baseline))
