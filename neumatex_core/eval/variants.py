@@ -393,7 +393,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # steps it reaches the shipped fit's start (held-out photos -0.02 +- 0.05 / -0.06 +- 0.07 dB in v1 / v6, 17
     # captures), and in as many steps a better one in v6 (+2.07 +- 0.20, 17 of 17), whose fit the shipped rate
     # leaves far from converged (bench/basis_start.py --fits). End to end the first saves 36 s of the demo's TTO
-    # (photos +0.41 dB) and 12% on six Cycles captures, relit -0.20 +- 0.18 there: not resolved (design note 104)
+    # (photos +0.41 dB) and 12% on six Cycles captures, relit -0.20 +- 0.18 there: not resolved (design note 104);
+    # on 25 of the 40 benchmark objects PathTrace clean +0.03 +- 0.07, relit -0.03 +- 0.08 (design note 105)
     "default_fit_lr02_500": {**DEFAULT_81, "pbr_fit_lr": 0.2, "pbr_fit_steps": 500},
     "default_fit_lr02": {**DEFAULT_81, "pbr_fit_lr": 0.2},
     # ... the default with its settling's cosine ending at a third / a tenth of where lr_final ends it (the rate
